@@ -1,0 +1,63 @@
+"""Cook-Torrance BRDF with a GGX normal distribution (DESIGN section 3).
+
+    f(l, v) = rho_d / pi + rho_s * D(h) * F * G(l, v) / (4 (n.l) (n.v))
+
+with alpha = roughness ** 2 (perceptual roughness, as in most renderers), D the GGX (Trowbridge-Reitz)
+distribution, G the Smith masking-shadowing with the Schlick-GGX approximation k = alpha / 2, and
+F either constant 1 (rho_s is then the specular albedo) or Schlick's approximation with normal
+reflectance rho_s. All inputs broadcast; directions are unit vectors in any common frame.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+_EPS = 1e-6
+
+
+def ggx_distribution(n_dot_h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """GGX normal distribution D(h) for cos(theta_h) ``n_dot_h`` and width ``alpha`` (broadcast)."""
+    a2 = alpha * alpha
+    denom = n_dot_h * n_dot_h * (a2 - 1.0) + 1.0
+    return a2 / (math.pi * denom * denom)
+
+
+def smith_schlick_ggx(n_dot_l: torch.Tensor, n_dot_v: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """Smith masking-shadowing G with the Schlick-GGX approximation, k = alpha / 2."""
+    k = alpha / 2.0
+    return (n_dot_l / (n_dot_l * (1.0 - k) + k)) * (n_dot_v / (n_dot_v * (1.0 - k) + k))
+
+
+def cook_torrance_specular(
+    normal: torch.Tensor,
+    light_dir: torch.Tensor,
+    view_dir: torch.Tensor,
+    roughness: torch.Tensor,
+    fresnel: str = "constant",
+) -> torch.Tensor:
+    """The specular lobe D F G / (4 (n.l)(n.v)) for unit specular albedo.
+
+    Args:
+        normal, light_dir, view_dir: (..., 3) unit vectors (broadcast).
+        roughness: (...) perceptual roughness in (0, 1]; alpha = roughness ** 2.
+        fresnel: ``"constant"`` (F = 1) or ``"schlick"`` (F0 = 0.04, dielectric).
+
+    Returns:
+        (...) lobe value per steradian; zero where the light or view is below the surface.
+    """
+    half = light_dir + view_dir
+    half = half / half.norm(dim=-1, keepdim=True).clamp_min(_EPS)
+    n_dot_l = (normal * light_dir).sum(-1)
+    n_dot_v = (normal * view_dir).sum(-1)
+    n_dot_h = (normal * half).sum(-1).clamp(0.0, 1.0)
+    alpha = (roughness * roughness).clamp_min(1e-4)
+    nl, nv = n_dot_l.clamp_min(_EPS), n_dot_v.clamp_min(_EPS)
+    lobe = ggx_distribution(n_dot_h, alpha) * smith_schlick_ggx(nl, nv, alpha) / (4.0 * nl * nv)
+    if fresnel == "schlick":
+        v_dot_h = (view_dir * half).sum(-1).clamp(0.0, 1.0)
+        lobe = lobe * (0.04 + 0.96 * (1.0 - v_dot_h) ** 5)
+    elif fresnel != "constant":
+        raise ValueError(f"fresnel must be 'constant' or 'schlick', got {fresnel!r}")
+    visible = (n_dot_l > 0) & (n_dot_v > 0)
+    return torch.where(visible, lobe, torch.zeros_like(lobe))

@@ -1,0 +1,65 @@
+"""One error type for bad user input, and the one helper that checks tensors at public entry points.
+
+The command line turns an ``InputError`` into a single line on stderr and exit status 2; anything
+else is a bug and keeps its traceback.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+import torch
+
+
+class InputError(ValueError):
+    """Bad input from a user: wrong shape, non-finite data, out-of-range values, missing file."""
+
+
+def check_array(
+    name: str,
+    value,
+    shape: Sequence[int | str | None] | None = None,
+    *,
+    finite: bool = True,
+    value_range: tuple[float, float] | None = None,
+) -> None:
+    """Check a numpy array or torch tensor and raise one readable ``InputError`` if it is wrong.
+
+    Args:
+        name: what the value is, used in the message (e.g. ``"patterns"``).
+        value: numpy array or torch tensor.
+        shape: expected shape; an int must match exactly, a str or None matches any size
+            (a str names the dimension in the message, e.g. ``("M", 9, 16, 3)``). A leading
+            ``"..."`` allows any number of leading dimensions.
+        finite: require every value to be finite.
+        value_range: inclusive (low, high) bounds every value must respect.
+    """
+    if not isinstance(value, (np.ndarray, torch.Tensor)):
+        raise InputError(f"{name}: expected an array, got {type(value).__name__}")
+    actual = tuple(value.shape)
+    if shape is not None:
+        expected = tuple(shape)
+        if expected and expected[0] == "...":
+            expected = expected[1:]
+            ok = len(actual) >= len(expected) and _dims_match(actual[len(actual) - len(expected):], expected)
+        else:
+            ok = len(actual) == len(expected) and _dims_match(actual, expected)
+        if not ok:
+            wanted = "(" + ", ".join("..." if d == "..." else str(d) for d in shape) + ")"
+            raise InputError(f"{name}: expected shape {wanted}, got {actual}")
+    is_tensor = isinstance(value, torch.Tensor)
+    if value.dtype in (torch.bool, np.bool_) or (value.numel() if is_tensor else value.size) == 0:
+        return
+    if finite:
+        bad = ~torch.isfinite(value).all() if is_tensor else ~np.isfinite(value).all()
+        if bool(bad):
+            raise InputError(f"{name}: contains NaN or infinite values")
+    if value_range is not None:
+        low, high = value_range
+        vmin, vmax = float(value.min()), float(value.max())
+        if vmin < low or vmax > high:
+            raise InputError(f"{name}: values must lie in [{low:g}, {high:g}], found [{vmin:.4g}, {vmax:.4g}]")
+
+
+def _dims_match(actual: tuple[int, ...], expected: tuple) -> bool:
+    return all(not isinstance(e, int) or a == e for a, e in zip(actual, expected))

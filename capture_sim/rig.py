@@ -1,0 +1,293 @@
+"""The capture rig: display grid, camera, display model and sensor model, loaded from TOML.
+
+A rig is everything about the hardware that the simulator and the reconstructions need; a scene
+(its OLAT stack) is captured with one. Presets live in ``configs/rigs/NAME.toml``; a preset either
+lists calibrated superpixel positions or describes a panel that ``panel_positions`` builds.
+Frames and units follow DESIGN section 2: OpenCV camera frame, metres.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from capture_sim.errors import InputError, check_array
+from capture_sim.toml_io import load_toml
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+RIG_DIR = CONFIG_DIR / "rigs"
+DEFAULT_RIG = "dir-odyssey-ark"
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole camera of the rig.
+
+    Attributes:
+        K_cam: (3, 3) intrinsics in pixels for an image of ``height`` x ``width``.
+        height: image rows in pixels.
+        width: image columns in pixels.
+    """
+
+    K_cam: tuple[tuple[float, float, float], ...]
+    height: int
+    width: int
+
+    def matrix(self) -> np.ndarray:
+        """(3, 3) float64 intrinsics matrix."""
+        return np.asarray(self.K_cam, dtype=np.float64)
+
+    def resized(self, height: int, width: int) -> "Camera":
+        """The same camera imaged at another resolution: fx, cx scale with width; fy, cy with height."""
+        if height <= 0 or width <= 0:
+            raise InputError(f"image size must be positive, got {height} x {width}")
+        sx, sy = width / self.width, height / self.height
+        k = self.matrix()
+        k[0, :] *= sx
+        k[1, :] *= sy
+        return Camera(K_cam=_as_nested(k), height=height, width=width)
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Poisson-Gaussian sensor noise: variance = shot * signal + read_std ** 2 (signal in [0, 1])."""
+
+    shot: float = 1e-4
+    """Shot-noise gain a: variance per unit of signal (full scale = 1)."""
+    read_std: float = 5e-4
+    """Read-noise standard deviation sigma_read, in units of full scale."""
+
+    def scaled(self, factor: float) -> "NoiseModel":
+        """Noise with both variance terms multiplied by ``factor`` (0 gives a noise-free sensor)."""
+        return NoiseModel(shot=self.shot * factor, read_std=self.read_std * math.sqrt(factor))
+
+
+@dataclass(frozen=True)
+class Falloff:
+    """Light falloff with distance d (metres) from a superpixel.
+
+    ``inverse_square`` is the physical 1 / d^2. ``fitted`` is 1 / (a + b d^2) as fitted by a
+    calibration; it can have a pole and change sign, so ``check`` must pass over the scene's
+    distances before it is used.
+    """
+
+    kind: str = "inverse_square"
+    a: float = 0.0
+    b: float = 1.0
+
+    def __post_init__(self):
+        if self.kind not in ("inverse_square", "fitted"):
+            raise InputError(f"falloff kind must be 'inverse_square' or 'fitted', got {self.kind!r}")
+
+    def __call__(self, distance: torch.Tensor) -> torch.Tensor:
+        """Falloff factor for distances ``distance`` (any shape, metres); same shape."""
+        d2 = distance * distance
+        if self.kind == "inverse_square":
+            return 1.0 / d2
+        return 1.0 / (self.a + self.b * d2)
+
+    def check(self, distance: torch.Tensor) -> None:
+        """Raise ``InputError`` unless the falloff is positive and finite at every distance given."""
+        values = self(distance.detach())
+        if not bool(torch.isfinite(values).all()) or bool((values <= 0).any()):
+            lo, hi = float(distance.min()), float(distance.max())
+            raise InputError(
+                f"falloff {self.kind} (a={self.a:g}, b={self.b:g}) is not positive and finite over "
+                f"light distances {lo:.3f}..{hi:.3f} m"
+            )
+
+
+@dataclass(frozen=True, eq=False)
+class Rig:
+    """A display-camera rig (DESIGN sections 2 and 3).
+
+    Attributes:
+        name: preset name or file stem.
+        light_positions: (R, C, 3) superpixel centres, metres, camera frame; row 0 at the top.
+        backlight: (R, C) backlight B added to every set value before the gamma (all channels).
+        camera: intrinsics and image size.
+        gamma: display non-linearity: emitted = scale * (P + B) ** gamma.
+        scale: global display scale s.
+        falloff: distance falloff model.
+        exposure: fixed exposure/gain e, or None for auto exposure (DESIGN section 3).
+        noise: sensor noise model.
+        bit_depth: sensor quantisation in bits, or None for no quantisation.
+        working_distance: metres from the camera to the plane used when a scene has no depth.
+        panel_pixels: native display resolution (height, width) in display pixels, for export.
+    """
+
+    name: str
+    light_positions: np.ndarray
+    backlight: np.ndarray
+    camera: Camera
+    gamma: float = 2.2
+    scale: float = 1.0
+    falloff: Falloff = field(default_factory=Falloff)
+    exposure: float | None = None
+    noise: NoiseModel = field(default_factory=NoiseModel)
+    bit_depth: int | None = 12
+    working_distance: float = 0.5
+    panel_pixels: tuple[int, int] = (2160, 3840)
+
+    def __post_init__(self):
+        positions = np.asarray(self.light_positions, dtype=np.float64)
+        check_array(f"rig {self.name}: light_positions", positions, ("R", "C", 3))
+        backlight = np.asarray(self.backlight, dtype=np.float64)
+        if backlight.ndim == 0:
+            backlight = np.full(positions.shape[:2], float(backlight))
+        check_array(f"rig {self.name}: backlight", backlight, positions.shape[:2], value_range=(0.0, 1.0))
+        object.__setattr__(self, "light_positions", positions)
+        object.__setattr__(self, "backlight", backlight)
+        if self.gamma <= 0 or self.scale <= 0:
+            raise InputError(f"rig {self.name}: gamma and scale must be positive")
+        if self.exposure is not None and not self.exposure > 0:
+            raise InputError(f"rig {self.name}: exposure must be positive or auto")
+        if self.bit_depth is not None and not 1 <= self.bit_depth <= 24:
+            raise InputError(f"rig {self.name}: bit_depth must be 1..24 or none")
+
+    @property
+    def rows(self) -> int:
+        return self.light_positions.shape[0]
+
+    @property
+    def cols(self) -> int:
+        return self.light_positions.shape[1]
+
+    @property
+    def num_lights(self) -> int:
+        """K = R * C."""
+        return self.rows * self.cols
+
+    def lights(self, dtype=torch.float32) -> torch.Tensor:
+        """(K, 3) superpixel positions in light order k = r * C + c, metres, camera frame."""
+        return torch.as_tensor(self.light_positions.reshape(-1, 3), dtype=dtype)
+
+    def backlight_flat(self, dtype=torch.float32) -> torch.Tensor:
+        """(K,) backlight in light order."""
+        return torch.as_tensor(self.backlight.reshape(-1), dtype=dtype)
+
+    def replace(self, **changes) -> "Rig":
+        """A copy with some fields changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    def with_resolution(self, height: int, width: int) -> "Rig":
+        """The rig imaging at ``height`` x ``width``, intrinsics scaled to match."""
+        return self.replace(camera=self.camera.resized(height, width))
+
+    def check_lights(self, num_lights: int, what: str = "OLAT stack") -> None:
+        """Raise ``InputError`` if ``num_lights`` differs from this rig's R * C."""
+        if num_lights != self.num_lights:
+            raise InputError(
+                f"{what} has {num_lights} lights but rig {self.name} has {self.rows} x {self.cols} = "
+                f"{self.num_lights} superpixels"
+            )
+
+
+def available_rigs() -> list[str]:
+    """Names of the rig presets in ``configs/rigs``."""
+    return sorted(p.stem for p in RIG_DIR.glob("*.toml"))
+
+
+def load_rig(name_or_path: str | Path = DEFAULT_RIG) -> Rig:
+    """Load a rig from a preset name (``configs/rigs/NAME.toml``) or a TOML file path."""
+    path = Path(name_or_path)
+    if path.suffix != ".toml":
+        path = RIG_DIR / f"{name_or_path}.toml"
+        if not path.exists():
+            raise InputError(f"unknown rig {name_or_path!r}; presets: {', '.join(available_rigs())}")
+    return rig_from_dict(load_toml(path), default_name=path.stem)
+
+
+def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
+    """Build a rig from the parsed TOML layout documented in ``configs/rigs/README.md``."""
+    try:
+        cam = config["camera"]
+        camera = Camera(
+            K_cam=_as_nested(np.array([[cam["fx"], 0.0, cam["cx"]], [0.0, cam["fy"], cam["cy"]], [0.0, 0.0, 1.0]])),
+            height=int(cam["height"]),
+            width=int(cam["width"]),
+        )
+        display = config["display"]
+        if "light_positions" in display:
+            positions = np.asarray(display["light_positions"], dtype=np.float64)
+        else:
+            positions = panel_positions(**display["panel"])
+        exposure = config.get("exposure", "auto")
+        bit_depth = config.get("bit_depth", 12)
+        return Rig(
+            name=config.get("name", default_name),
+            light_positions=positions,
+            backlight=np.asarray(display.get("backlight", 0.0), dtype=np.float64),
+            camera=camera,
+            gamma=float(display.get("gamma", 2.2)),
+            scale=float(display.get("scale", 1.0)),
+            falloff=Falloff(**config.get("falloff", {})),
+            exposure=None if exposure == "auto" else float(exposure),
+            noise=NoiseModel(**config.get("noise", {})),
+            bit_depth=None if bit_depth in (0, "none") else int(bit_depth),
+            working_distance=float(config.get("working_distance", 0.5)),
+            panel_pixels=tuple(display.get("panel_pixels", (2160, 3840))),
+        )
+    except KeyError as missing:
+        raise InputError(f"rig {default_name}: missing key {missing}") from None
+    except TypeError as err:
+        raise InputError(f"rig {default_name}: {err}") from None
+
+
+def panel_positions(
+    rows: int,
+    cols: int,
+    diagonal_inch: float = 55.0,
+    aspect: tuple[float, float] = (16.0, 9.0),
+    curvature_radius: float | None = None,
+    distance: float = 0.0,
+    offset: tuple[float, float] = (0.0, 0.0),
+    tilt_deg: float = 0.0,
+) -> np.ndarray:
+    """Superpixel centres of a flat or curved panel facing the scene.
+
+    The panel's centre sits at (offset_x, offset_y, -distance) in the camera frame and faces +z
+    (towards the object). A curved panel bends about a vertical axis with radius
+    ``curvature_radius`` (metres; None = flat), its edges closer to the object, as curved monitors
+    do. ``tilt_deg`` rotates it about the x axis, positive bringing its top edge towards the object.
+
+    Args:
+        rows, cols: superpixel grid R x C over the whole panel.
+        diagonal_inch: panel diagonal in inches.
+        aspect: (width, height) aspect ratio.
+        curvature_radius: radius of curvature in metres, or None for a flat panel.
+        distance: metres the panel centre sits behind the camera centre (along -z).
+        offset: (x, y) metres of the panel centre from the camera's optical axis.
+        tilt_deg: tilt about the x axis in degrees.
+
+    Returns:
+        (R, C, 3) float64 positions in metres, camera frame.
+    """
+    if rows < 1 or cols < 1:
+        raise InputError(f"panel grid must be at least 1 x 1, got {rows} x {cols}")
+    diagonal = diagonal_inch * 0.0254
+    aw, ah = aspect
+    width, height = diagonal * aw / math.hypot(aw, ah), diagonal * ah / math.hypot(aw, ah)
+    u = (np.arange(cols) + 0.5) / cols * width - width / 2  # arc length along the panel, metres
+    v = (np.arange(rows) + 0.5) / rows * height - height / 2  # y down: row 0 at the top (negative y)
+    uu, vv = np.meshgrid(u, v)
+    if curvature_radius:
+        theta = uu / curvature_radius
+        x = curvature_radius * np.sin(theta)
+        z = curvature_radius * (1 - np.cos(theta))
+    else:
+        x, z = uu, np.zeros_like(uu)
+    y = vv
+    tilt = math.radians(tilt_deg)
+    # Rotate about x so that the top edge (negative y) moves towards +z.
+    y_t = y * math.cos(tilt) + z * math.sin(tilt)
+    z_t = -y * math.sin(tilt) + z * math.cos(tilt)
+    return np.stack([x + offset[0], y_t + offset[1], z_t - distance], axis=-1)
+
+
+def _as_nested(matrix: np.ndarray) -> tuple[tuple[float, float, float], ...]:
+    return tuple(tuple(float(v) for v in row) for row in matrix)

@@ -1,0 +1,146 @@
+"""Scenes: an OLAT stack with its mask, geometry and calibration (DESIGN section 7).
+
+A scene is read from and written to the interchange ``.npz``; ``load_scene`` validates it so that
+every command fails with one clear message on a bad file.
+"""
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from capture_sim.atomic import save_npz
+from capture_sim.errors import InputError, check_array
+from capture_sim.geometry import pixel_rays
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """An OLAT capture of one object.
+
+    Attributes:
+        olat: (K, H, W, 3) float16/float32 linear radiance per unit display intensity, backlight removed.
+        mask: (H, W) bool object mask.
+        K_cam: (3, 3) float64 intrinsics for H x W.
+        light_positions: (R, C, 3) float32 superpixel centres, metres, camera frame.
+        normal: optional (H, W, 3) float32 unit ground-truth normals (n_z < 0 where visible).
+        depth: optional (H, W) float32 z-depth in metres.
+        diffuse, specular: optional (K, H, W, 3) polarisation-separated stacks.
+        meta: free-form description (name, generator, material, units).
+    """
+
+    olat: np.ndarray
+    mask: np.ndarray
+    K_cam: np.ndarray
+    light_positions: np.ndarray
+    normal: np.ndarray | None = None
+    depth: np.ndarray | None = None
+    diffuse: np.ndarray | None = None
+    specular: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        validate_scene(self)
+
+    @property
+    def name(self) -> str:
+        return str(self.meta.get("name", "scene"))
+
+    @property
+    def height(self) -> int:
+        return self.olat.shape[1]
+
+    @property
+    def width(self) -> int:
+        return self.olat.shape[2]
+
+    @property
+    def num_lights(self) -> int:
+        return self.olat.shape[0]
+
+    def points(self, working_distance: float, dtype=torch.float32) -> torch.Tensor:
+        """(H, W, 3) surface points in metres: from the depth map, else a plane at ``working_distance``."""
+        rays = pixel_rays(self.K_cam, self.height, self.width, dtype=torch.float64)
+        depth = torch.full(rays.shape[:2], float(working_distance), dtype=torch.float64)
+        if self.depth is not None:
+            depth = torch.as_tensor(self.depth, dtype=torch.float64)
+        return (depth[..., None] * rays).to(dtype)
+
+
+def validate_scene(scene: Scene) -> None:
+    """Raise ``InputError`` with one readable line if the scene breaks DESIGN section 7."""
+    name = f"scene {scene.meta.get('name', '')}".strip()
+    check_array(f"{name}: olat", scene.olat, ("K", "H", "W", 3))
+    num_lights, height, width, _ = scene.olat.shape
+    if scene.olat.dtype not in (np.float16, np.float32):
+        raise InputError(f"{name}: olat must be float16 or float32, got {scene.olat.dtype}")
+    if float(scene.olat.min(initial=0.0)) < 0:
+        raise InputError(f"{name}: olat has negative radiance")
+    check_array(f"{name}: mask", scene.mask, (height, width))
+    if scene.mask.dtype != np.bool_:
+        raise InputError(f"{name}: mask must be bool, got {scene.mask.dtype}")
+    check_array(f"{name}: K_cam", scene.K_cam, (3, 3))
+    check_array(f"{name}: light_positions", scene.light_positions, ("R", "C", 3))
+    rows, cols = scene.light_positions.shape[:2]
+    if rows * cols != num_lights:
+        raise InputError(
+            f"{name}: olat has {num_lights} images but light_positions is a {rows} x {cols} grid ({rows * cols} lights)"
+        )
+    if scene.normal is not None:
+        check_array(f"{name}: normal", scene.normal, (height, width, 3))
+    if scene.depth is not None:
+        check_array(f"{name}: depth", scene.depth, (height, width))
+        if bool((scene.depth[scene.mask] <= 0).any()):
+            raise InputError(f"{name}: depth must be positive inside the mask")
+    for key in ("diffuse", "specular"):
+        stack = getattr(scene, key)
+        if stack is not None:
+            check_array(f"{name}: {key}", stack, (num_lights, height, width, 3))
+
+
+_ARRAY_KEYS = ("olat", "mask", "K_cam", "light_positions", "normal", "depth", "diffuse", "specular")
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read and validate a scene interchange ``.npz`` (DESIGN section 7)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"scene file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: data[key] for key in _ARRAY_KEYS if key in data}
+            meta = json.loads(str(data["meta"])) if "meta" in data else {}
+    except (OSError, ValueError, zipfile.BadZipFile, json.JSONDecodeError) as err:
+        raise InputError(f"{path}: not a readable scene .npz ({err})") from None
+    for required in ("olat", "mask", "K_cam", "light_positions"):
+        if required not in arrays:
+            raise InputError(f"{path}: scene is missing required array '{required}'")
+    meta.setdefault("name", path.stem)
+    return Scene(meta=meta, **arrays)
+
+
+def save_scene(scene: Scene, path: str | Path, compressed: bool = True) -> None:
+    """Write a scene as interchange ``.npz`` atomically."""
+    arrays = {key: getattr(scene, key) for key in _ARRAY_KEYS if getattr(scene, key) is not None}
+    save_npz(path, compressed=compressed, meta=np.array(json.dumps(scene.meta)), **arrays)
+
+
+def scene_paths(paths) -> list[Path]:
+    """Expand files and folders (every ``*.npz`` inside, sorted) into a list of scene files."""
+    found: list[Path] = []
+    for entry in paths:
+        entry = Path(entry)
+        if entry.is_dir():
+            files = sorted(entry.glob("*.npz"))
+            if not files:
+                raise InputError(f"no scene .npz files in folder {entry}")
+            found.extend(files)
+        elif entry.is_file():
+            found.append(entry)
+        else:
+            raise InputError(f"scene path not found: {entry}")
+    return found
