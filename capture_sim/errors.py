@@ -48,6 +48,8 @@ def check_array(
             wanted = "(" + ", ".join("..." if d == "..." else str(d) for d in shape) + ")"
             raise InputError(f"{name}: expected shape {wanted}, got {actual}")
     is_tensor = isinstance(value, torch.Tensor)
+    if is_tensor:
+        value = value.detach()
     if value.dtype in (torch.bool, np.bool_) or (value.numel() if is_tensor else value.size) == 0:
         return
     if finite:

@@ -16,6 +16,7 @@ import torch
 from capture_sim.atomic import save_npz
 from capture_sim.errors import InputError, check_array
 from capture_sim.geometry import pixel_rays
+from capture_sim.rig import Camera, Rig
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,3 +145,16 @@ def scene_paths(paths) -> list[Path]:
         else:
             raise InputError(f"scene path not found: {entry}")
     return found
+
+
+def rig_for_scene(rig: Rig, scene: Scene) -> Rig:
+    """The rig's display and sensor models with the scene's own lights and intrinsics.
+
+    A scene carries the calibration it was captured with; the rig supplies what the scene does not
+    (backlight, gamma, scale, noise, bit depth, falloff). Their light grids must agree.
+    """
+    rows, cols = scene.light_positions.shape[:2]
+    if (rows, cols) != (rig.rows, rig.cols):
+        raise InputError(f"scene {scene.name} has a {rows} x {cols} light grid but rig {rig.name} is {rig.rows} x {rig.cols}")
+    camera = Camera(K_cam=tuple(tuple(float(v) for v in row) for row in scene.K_cam), height=scene.height, width=scene.width)
+    return rig.replace(light_positions=scene.light_positions.astype(np.float64), camera=camera)

@@ -1,0 +1,31 @@
+"""Display model: what a superpixel emits for a set value (DESIGN section 3).
+
+    L = s * (P + B) ** gamma
+
+P is the set value in [0, 1], B the per-superpixel backlight (the panel is never fully black),
+gamma the display non-linearity and s a global scale.
+"""
+from __future__ import annotations
+
+import torch
+
+from capture_sim.errors import check_array
+
+
+def display_emission(patterns: torch.Tensor, backlight: torch.Tensor, gamma: float, scale: float = 1.0) -> torch.Tensor:
+    """Emitted intensity of every superpixel under every pattern.
+
+    Args:
+        patterns: (M, R, C, 3) or (M, K, 3) set values in [0, 1].
+        backlight: (R, C) or (K,) backlight B, same for all channels.
+        gamma: display non-linearity (reference 2.2).
+        scale: global display scale s.
+
+    Returns:
+        (M, K, 3) emitted intensity L in light order k = r * C + c, differentiable in ``patterns``.
+    """
+    check_array("patterns", patterns, ("...", 3), value_range=(0.0, 1.0))
+    flat = patterns.reshape(patterns.shape[0], -1, 3)
+    light_backlight = torch.as_tensor(backlight, dtype=flat.dtype).reshape(1, -1, 1)
+    check_array("backlight", light_backlight, (1, flat.shape[1], 1))
+    return scale * (flat + light_backlight) ** gamma

@@ -1,0 +1,29 @@
+"""Shared fixtures and the tolerance table (one place for all tolerances, keyed by dtype)."""
+import numpy as np
+import pytest
+import torch
+
+TOLERANCE = {
+    torch.float32: dict(rtol=1e-5, atol=1e-6),
+    torch.float64: dict(rtol=1e-10, atol=1e-12),
+}
+
+
+@pytest.fixture
+def reference_rig():
+    from capture_sim.rig import load_rig
+
+    return load_rig()
+
+
+@pytest.fixture
+def tiny_rig():
+    """A 2 x 3 panel rig imaging 4 x 5 pixels: small enough for gradcheck and loops."""
+    from capture_sim.rig import Camera, Rig, panel_positions
+
+    return Rig(
+        name="tiny",
+        light_positions=panel_positions(2, 3, diagonal_inch=40.0),
+        backlight=np.full((2, 3), 0.02),
+        camera=Camera(K_cam=((50.0, 0.0, 2.5), (0.0, 50.0, 2.0), (0.0, 0.0, 1.0)), height=4, width=5),
+    )

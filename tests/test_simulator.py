@@ -1,0 +1,129 @@
+import numpy as np
+import pytest
+import torch
+
+from capture_sim.display import display_emission
+from capture_sim.errors import InputError
+from capture_sim.reference import simulate_noise_free_reference
+from capture_sim.rig import NoiseModel
+from capture_sim.simulator import auto_exposure, light_transport, noise_free_radiance, sensor, simulate
+from tests.conftest import TOLERANCE
+
+
+def _random_stack(rig, seed=0, dtype=np.float32):
+    rng = np.random.default_rng(seed)
+    return rng.uniform(0.0, 1.0, (rig.num_lights, rig.camera.height, rig.camera.width, 3)).astype(dtype)
+
+
+def test_emission_matches_display_formula(tiny_rig):
+    patterns = torch.rand(2, tiny_rig.rows, tiny_rig.cols, 3, dtype=torch.float64)
+    emitted = display_emission(patterns, tiny_rig.backlight_flat(torch.float64), 2.2, 1.5)
+    expected = 1.5 * (patterns.reshape(2, -1, 3) + torch.as_tensor(tiny_rig.backlight.reshape(1, -1, 1))) ** 2.2
+    assert emitted.shape == (2, tiny_rig.num_lights, 3)
+    torch.testing.assert_close(emitted, expected, **TOLERANCE[torch.float64])
+
+
+@pytest.mark.parametrize("kind", ["one_hot", "random", "white"])
+def test_noise_free_simulation_matches_reference(tiny_rig, kind):
+    olat = _random_stack(tiny_rig)
+    num_lights = tiny_rig.num_lights
+    patterns = {
+        "one_hot": np.eye(num_lights)[:, :, None].repeat(3, axis=2).reshape(num_lights, tiny_rig.rows, tiny_rig.cols, 3),
+        "random": np.random.default_rng(1).uniform(0, 1, (3, tiny_rig.rows, tiny_rig.cols, 3)),
+        "white": np.ones((1, tiny_rig.rows, tiny_rig.cols, 3)),
+    }[kind]
+    exposure = 0.7  # large enough that the white pattern clips
+    capture = simulate(torch.as_tensor(patterns, dtype=torch.float32), light_transport(olat), tiny_rig, exposure=exposure, noise=None, bit_depth=None)
+    expected = simulate_noise_free_reference(patterns, olat, tiny_rig.backlight, tiny_rig.gamma, tiny_rig.scale, exposure)
+    got = capture.captures.reshape(len(patterns), tiny_rig.camera.height, tiny_rig.camera.width, 3).numpy()
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-7)
+    if kind == "white":
+        assert (got == 1.0).any(), "the test needs visible clipping"
+
+
+def test_masked_transport_scatters_back(tiny_rig):
+    olat = _random_stack(tiny_rig)
+    mask = np.zeros((4, 5), dtype=bool)
+    mask[1:3, 1:4] = True
+    transport = light_transport(olat, mask)
+    assert transport.matrix.shape == (3, tiny_rig.num_lights, mask.sum())
+    patterns = torch.rand(2, tiny_rig.rows, tiny_rig.cols, 3)
+    emitted = display_emission(patterns, tiny_rig.backlight_flat(), tiny_rig.gamma)
+    image = transport.to_image(noise_free_radiance(emitted, transport))
+    full = light_transport(olat).to_image(noise_free_radiance(emitted, light_transport(olat)))
+    torch.testing.assert_close(image[:, mask], full[:, mask])
+    assert (image[:, ~mask] == 0).all()
+
+
+def test_auto_exposure_puts_percentile_at_target():
+    radiance = torch.rand(4, 20000, 3) * 3.0
+    exposure = auto_exposure(radiance)
+    exposed = (exposure * radiance).reshape(-1)
+    assert abs(float(torch.quantile(exposed, 0.999)) - 0.9) < 2e-3
+    assert auto_exposure(torch.zeros(2, 10, 3)) == 1.0
+
+
+def test_noise_variance_matches_model():
+    noise = NoiseModel(shot=1e-4, read_std=5e-4)
+    generator = torch.Generator().manual_seed(0)
+    for level in (0.05, 0.5):
+        signal = torch.full((100_000,), level, dtype=torch.float64)
+        captured = sensor(signal, noise, bit_depth=None, generator=generator)
+        expected = noise.shot * level + noise.read_std**2
+        assert abs(float(captured.var()) / expected - 1.0) < 0.05
+        assert abs(float(captured.mean()) - level) < 4 * np.sqrt(expected / 1e5)
+
+
+def test_noise_is_reproducible_with_seed(tiny_rig):
+    transport = light_transport(_random_stack(tiny_rig))
+    patterns = torch.rand(2, tiny_rig.rows, tiny_rig.cols, 3)
+    runs = [simulate(patterns, transport, tiny_rig, generator=torch.Generator().manual_seed(5)).captures for _ in range(2)]
+    other = simulate(patterns, transport, tiny_rig, generator=torch.Generator().manual_seed(6)).captures
+    assert torch.equal(runs[0], runs[1])
+    assert not torch.equal(runs[0], other)
+
+
+def test_quantisation_levels_and_straight_through_gradient():
+    signal = torch.linspace(0.0, 1.0, 101, dtype=torch.float64, requires_grad=True)
+    captured = sensor(signal, None, bit_depth=4)
+    levels = captured.detach() * 15
+    torch.testing.assert_close(levels, levels.round())
+    captured.sum().backward()
+    assert torch.all(signal.grad == 1.0)  # identity inside [0, 1]
+
+
+def test_clip_gradient_surrogate_points_out_of_saturation():
+    signal = torch.tensor([1.002, 1.5, -0.002], dtype=torch.float64, requires_grad=True)
+    captured = sensor(signal, None, None)
+    assert torch.equal(captured.detach(), torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64))
+    captured.sum().backward()
+    assert 0.5 < signal.grad[0] < 1 and signal.grad[1] < 1e-6 and 0.5 < signal.grad[2] < 1
+
+
+def test_simulator_gradcheck(tiny_rig):
+    olat = torch.as_tensor(_random_stack(tiny_rig, dtype=np.float64)) * 0.2
+    transport = light_transport(olat, dtype=torch.float64)
+    patterns = (0.2 + 0.6 * torch.rand(2, tiny_rig.rows, tiny_rig.cols, 3, dtype=torch.float64)).requires_grad_()
+
+    def captured(values):
+        generator = torch.Generator().manual_seed(0)
+        return simulate(values, transport, tiny_rig, exposure=0.5, noise=NoiseModel(), bit_depth=None, generator=generator).captures
+
+    assert torch.autograd.gradcheck(captured, (patterns,), eps=1e-6, atol=1e-6)
+
+
+def test_bad_inputs_raise_clear_errors(tiny_rig):
+    transport = light_transport(_random_stack(tiny_rig))
+    with pytest.raises(InputError, match=r"\[0, 1\]"):
+        simulate(torch.full((1, tiny_rig.rows, tiny_rig.cols, 3), 1.5), transport, tiny_rig)
+    with pytest.raises(InputError, match="shape"):
+        simulate(torch.rand(1, 3, 3, 3), transport, tiny_rig)
+    with pytest.raises(InputError, match="NaN"):
+        bad = _random_stack(tiny_rig)
+        bad[0, 0, 0, 0] = np.nan
+        light_transport(bad)
+    with pytest.raises(InputError, match="exposure"):
+        simulate(torch.rand(1, tiny_rig.rows, tiny_rig.cols, 3), transport, tiny_rig, exposure=-1.0)
+    other_rig = tiny_rig.replace(light_positions=tiny_rig.light_positions[:1], backlight=tiny_rig.backlight[:1])
+    with pytest.raises(InputError, match="lights"):
+        simulate(torch.rand(1, 1, 3, 3), transport, other_rig)

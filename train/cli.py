@@ -1,0 +1,140 @@
+"""The `displex` command line: parses arguments and calls each command's ``run_*(config)``.
+
+Bad input (``InputError``, a missing file) ends with one line on stderr and exit status 2; tests
+call the ``run_*`` functions directly.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from capture_sim.errors import InputError
+from capture_sim.rig import DEFAULT_RIG
+
+NOISE_CHOICES = ("off", "default")
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        height, width = (int(part) for part in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like 128x153, got {text!r}") from None
+    if height < 2 or width < 2:
+        raise argparse.ArgumentTypeError(f"size must be at least 2x2, got {text!r}")
+    return height, width
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="displex",
+        description="Design illumination patterns for display-camera photometric stereo: synthesise scenes, "
+        "simulate captures, reconstruct, learn and search patterns, export them, compare methods.",
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    scenes = commands.add_parser("scenes", help="synthetic scene sets").add_subparsers(dest="scenes_command", required=True)
+    synth = scenes.add_parser("synth", help="write the default synthetic scene set (train/ and test/ splits)")
+    synth.add_argument("--out", type=Path, required=True, help="output folder")
+    synth.add_argument("--size", type=_size, default=(128, 153), help="image size HxW (default 128x153; full 512x612)")
+    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--rig", default=DEFAULT_RIG, help="rig preset or TOML path")
+    synth.add_argument("--cast-shadows", action="store_true", help="trace cast shadows (slower)")
+    synth.set_defaults(handler=_scenes_synth)
+
+    simulate = commands.add_parser("simulate", help="simulate captures of a scene under a pattern set")
+    simulate.add_argument("--scene", type=Path, required=True)
+    simulate.add_argument("--patterns", type=Path, required=True, help="pattern file .npz or .npy")
+    simulate.add_argument("--out", type=Path, required=True)
+    simulate.add_argument("--noise", choices=NOISE_CHOICES, default="default")
+    simulate.add_argument("--exposure", default="auto", help="'auto' (default) or a positive number")
+    simulate.add_argument("--seed", type=int, default=0)
+    simulate.add_argument("--rig", default=DEFAULT_RIG)
+    simulate.set_defaults(handler=_simulate)
+
+    patterns = commands.add_parser("patterns", help="heuristic pattern families").add_subparsers(dest="patterns_command", required=True)
+    make = patterns.add_parser("make", help="write a heuristic pattern set")
+    make.add_argument("--family", required=True, help="family name (see `displex patterns list`)")
+    make.add_argument("--M", type=int, required=True, dest="num_patterns", help="number of patterns")
+    make.add_argument("--out", type=Path, required=True)
+    make.add_argument("--preset", default="default", help="'default' (off level 0) or 'ddps' (published 0.1/0.9 levels)")
+    make.add_argument("--seed", type=int, default=0, help="seed of the random families")
+    make.add_argument("--rig", default=DEFAULT_RIG)
+    make.set_defaults(handler=_patterns_make)
+    listing = patterns.add_parser("list", help="list families and their parameters")
+    listing.add_argument("--M", type=int, default=4, dest="num_patterns")
+    listing.set_defaults(handler=_patterns_list)
+
+    bench = commands.add_parser("bench", help="benchmarks written as JSON (medians of several runs)")
+    bench.add_argument("target", help="what to benchmark: sim, ps, train, invrender")
+    bench.add_argument("--json", type=Path, default=None, help="write the results here")
+    bench.add_argument("--repeats", type=int, default=5, help="timed runs per measurement (median)")
+    bench.set_defaults(handler=_bench)
+
+    return parser
+
+
+def _bench(args) -> None:
+    import json
+
+    from train.bench import run_bench
+
+    if args.repeats < 1:
+        raise InputError("--repeats must be at least 1")
+    print(json.dumps(run_bench(args.target, args.json, args.repeats), indent=2))
+
+
+def _scenes_synth(args) -> None:
+    from capture_sim.rig import load_rig
+    from capture_sim.synth import write_scene_set
+
+    index = write_scene_set(args.out, rig=load_rig(args.rig), height=args.size[0], width=args.size[1], seed=args.seed, cast_shadows=args.cast_shadows)
+    print(f"wrote {sum(len(v) for v in index.values()) if isinstance(index, dict) else index} scenes to {args.out}")
+
+
+def _simulate(args) -> None:
+    from train.simulate_command import SimulateConfig, run_simulate
+
+    meta = run_simulate(SimulateConfig(args.scene, args.patterns, args.out, args.noise, args.exposure, args.seed, args.rig))
+    print(f"wrote {len(meta['files'])} captures to {args.out} (exposure {meta['exposure']:.4g})")
+
+
+def _patterns_make(args) -> None:
+    from capture_sim.rig import load_rig
+    from patterns.families import make_patterns
+    from patterns.io import save_patterns
+
+    rig = load_rig(args.rig)
+    values = make_patterns(args.family, args.num_patterns, rows=rig.rows, cols=rig.cols, preset=args.preset, seed=args.seed)
+    save_patterns(args.out, values, {"family": args.family, "preset": args.preset, "seed": args.seed, "rig": rig.name, "made_by": "displex patterns make"})
+    print(f"wrote {args.family} M={args.num_patterns} to {args.out}")
+
+
+def _patterns_list(args) -> None:
+    from patterns.families import FAMILIES
+
+    for name, family in FAMILIES.items():
+        print(name)
+
+
+def run(argv: list[str] | None = None) -> int:
+    """Run one command; returns 0 on success, 2 on bad input (after printing one error line)."""
+    args = build_parser().parse_args(argv)
+    try:
+        args.handler(args)
+    except InputError as err:
+        print(f"displex: error: {err}", file=sys.stderr)
+        return 2
+    except FileNotFoundError as err:
+        print(f"displex: error: file not found: {err.filename}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def entrypoint() -> None:
+    """Console-script entry point."""
+    sys.exit(run())
+
+
+if __name__ == "__main__":
+    entrypoint()

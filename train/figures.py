@@ -1,0 +1,50 @@
+"""Small plotting helpers shared by the commands: display tone mapping and image grids.
+
+Figures use matplotlib's object API on the Agg backend and are saved atomically.
+"""
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402  (the backend must be chosen first)
+import numpy as np  # noqa: E402
+
+from capture_sim.atomic import atomic_path  # noqa: E402
+
+
+def for_display(linear: np.ndarray) -> np.ndarray:
+    """Linear [0, 1] images (..., 3) to display values with a 1/2.2 gamma, clipped to [0, 1]."""
+    return np.clip(np.nan_to_num(linear), 0.0, 1.0) ** (1 / 2.2)
+
+
+def normal_to_rgb(normal: np.ndarray) -> np.ndarray:
+    """Unit normals (..., 3) in the camera frame to RGB (x right -> red, y down -> green, -z -> blue)."""
+    colour = np.stack([normal[..., 0], -normal[..., 1], -normal[..., 2]], axis=-1)
+    return np.clip(0.5 * (colour + 1.0), 0.0, 1.0)
+
+
+def save_figure(fig, path) -> None:
+    """Save a figure as PNG atomically and release it."""
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
+def image_grid(images: list[np.ndarray], titles: list[str], suptitle: str, caption: str, columns: int = 4, cmap=None, colorbar_label=None):
+    """A figure with one panel per image (H, W, 3) or (H, W), titled, with a caption line below."""
+    count = len(images)
+    columns = max(1, min(columns, count))
+    rows = int(np.ceil(count / columns))
+    fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 2.9 * rows + 0.6), squeeze=False)
+    for ax in axes.ravel():
+        ax.set_axis_off()
+    for ax, image, title in zip(axes.ravel(), images, titles):
+        shown = ax.imshow(image, cmap=cmap, interpolation="nearest")
+        ax.set_title(title, fontsize=9)
+        if colorbar_label is not None:
+            fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.04, label=colorbar_label)
+    fig.suptitle(suptitle)
+    fig.text(0.5, 0.005, caption, ha="center", va="bottom", fontsize=8, wrap=True)
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    return fig
