@@ -1,0 +1,258 @@
+"""Synthetic OLAT scenes: ray-cast shapes shaded with basis-BRDF materials (DESIGN sections 3, 7).
+
+    O[k](x) = f(l_k, v) * max(0, n . l_k) * falloff(d_k) * V_k(x)
+
+rendered by ``render_olat`` for every superpixel k of the rig, with V_k the optional cast-shadow
+visibility (hard shadows by sphere tracing) and attached shadows always (the clamped cosine).
+
+Radiometric scale: no extra factor. O is radiance per unit display intensity with the rig's falloff
+in its own units (1/d^2 with d in metres for the physical falloff), so a white Lambertian patch
+facing a superpixel 0.5-0.9 m away reads 1/(pi d^2) ~ 0.4-1.3; typical diffuse values are
+O(0.1-1), specular highlights of glossy materials reach O(100-1000). Evaluation uses auto exposure,
+so the absolute scale does not matter (DESIGN section 3).
+
+Pixels outside the mask have zero OLAT, zero normal and zero depth.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from capture_sim.atomic import write_json
+from capture_sim.errors import InputError
+from capture_sim.geometry import light_geometry
+from capture_sim.materials import MATERIALS, make_material
+from capture_sim.render import render_olat
+from capture_sim.rig import Rig
+from capture_sim.scene import Scene, save_scene
+from capture_sim.shapes import SHAPES, cast_camera_rays, make_shape, shadow_visibility
+
+GENERATOR = "displex.synth"
+
+_CHUNK_PIXELS = 1024
+"""Pixels shaded at once: about 1024 * K * 3 float64 values per temporary, ~3.5 MB each for K = 144."""
+
+
+def synthesize_scene(
+    shape: str,
+    material: str,
+    rig: Rig,
+    height: int = 128,
+    width: int = 153,
+    seed: int = 0,
+    cast_shadows: bool = False,
+    name: str | None = None,
+    albedo=None,
+) -> Scene:
+    """Render the OLAT stack of one synthetic object seen by the rig's camera.
+
+    Args:
+        shape: one of ``capture_sim.shapes.SHAPES``; placed at the rig's working distance.
+        material: one of ``capture_sim.materials.MATERIALS``.
+        rig: the rig: its superpixel positions are the lights, its falloff is used, its camera
+            intrinsics are scaled to ``height`` x ``width``.
+        height, width: image size in pixels.
+        seed: non-negative integer; the shape and the material draw from it (same seed, same scene).
+        cast_shadows: trace shadow rays against the shape (slower); attached shadows are always on.
+        name: scene name for ``meta``; default ``"{shape}-{material}-s{seed}"``.
+        albedo: uniform (3,) or scalar diffuse albedo for ``material="lambertian"``.
+
+    Returns:
+        A ``Scene``: olat, diffuse, specular (K, H, W, 3) float32 with olat = diffuse + specular;
+        mask (H, W); normal (H, W, 3) float32 (OpenCV frame, n_z < 0); depth (H, W) float32 metres;
+        K_cam (3, 3); light_positions (R, C, 3) float32; meta (name, generator, shape, material,
+        units, rig, seed).
+    """
+    if shape not in SHAPES:
+        raise InputError(f"unknown shape {shape!r}; choose from {', '.join(SHAPES)}")
+    if material not in MATERIALS:
+        raise InputError(f"unknown material {material!r}; choose from {', '.join(MATERIALS)}")
+    if not isinstance(height, (int, np.integer)) or not isinstance(width, (int, np.integer)) or height < 1 or width < 1:
+        raise InputError(f"image size must be positive integers, got {height} x {width}")
+    camera_rig = rig.with_resolution(int(height), int(width))
+    K_cam = camera_rig.camera.matrix()
+
+    surface = make_shape(shape, seed=seed, distance=rig.working_distance)
+    hits = cast_camera_rays(surface, K_cam, height, width)
+    brdf = make_material(material, hits.points, seed=seed, albedo=albedo)
+
+    lights = rig.lights(dtype=torch.float64)
+    num_lights = lights.shape[0]
+    pixel_index = torch.nonzero(hits.mask.reshape(-1)).squeeze(-1)
+    points = hits.points.reshape(-1, 3)[pixel_index]
+    normals = hits.normals.reshape(-1, 3)[pixel_index]
+    weights = brdf.weights.reshape(-1, brdf.num_basis)[pixel_index]
+
+    diffuse = np.zeros((num_lights, height * width, 3), dtype=np.float32)
+    specular = np.zeros((num_lights, height * width, 3), dtype=np.float32)
+    for start in range(0, pixel_index.numel(), _CHUNK_PIXELS):
+        chunk = slice(start, start + _CHUNK_PIXELS)
+        _, distance = light_geometry(points[chunk], lights)
+        rig.falloff.check(distance)
+        visibility = shadow_visibility(surface, points[chunk], normals[chunk], lights) if cast_shadows else None
+        diffuse_chunk, specular_chunk = render_olat(
+            points[chunk], normals[chunk], lights, weights[chunk],
+            brdf.diffuse_albedo, brdf.specular_albedo, brdf.roughness,
+            falloff=rig.falloff, visibility=visibility,
+        )
+        columns = pixel_index[chunk].numpy()
+        diffuse[:, columns] = diffuse_chunk.numpy()
+        specular[:, columns] = specular_chunk.numpy()
+
+    shape_of_stack = (num_lights, height, width, 3)
+    diffuse, specular = diffuse.reshape(shape_of_stack), specular.reshape(shape_of_stack)
+    meta = {
+        "name": name or f"{shape}-{material}-s{seed}",
+        "generator": GENERATOR,
+        "shape": surface.describe(),
+        "material": brdf.describe(),
+        "seed": int(seed),
+        "cast_shadows": bool(cast_shadows),
+        "rig": rig.name,
+        "units": {
+            "olat": "radiance per unit display intensity: BRDF [1/sr] * cos * rig falloff "
+                    f"({rig.falloff.kind}, distances in m); radiometric scale 1",
+            "depth": "m, z in the OpenCV camera frame; 0 outside the mask",
+            "light_positions": "m, OpenCV camera frame",
+            "normal": "unit, OpenCV camera frame, n_z < 0; 0 outside the mask",
+        },
+    }
+    return Scene(
+        olat=diffuse + specular,
+        mask=hits.mask.numpy().copy(),
+        K_cam=K_cam,
+        light_positions=rig.light_positions.astype(np.float32),
+        normal=hits.normals.numpy().astype(np.float32),
+        depth=hits.depth.numpy().astype(np.float32),
+        diffuse=diffuse,
+        specular=specular,
+        meta=meta,
+    )
+
+
+def lambertian_sphere(rig: Rig, albedo=(0.6, 0.6, 0.6), height: int = 128, width: int = 153) -> Scene:
+    """A uniform Lambertian sphere (radius 0.07 m on the optical axis at the working distance).
+
+    Args:
+        rig: the capture rig.
+        albedo: (3,) or scalar diffuse albedo in [0, 1].
+        height, width: image size in pixels.
+
+    Returns:
+        The scene (see ``synthesize_scene``); a convex sphere has no cast shadows.
+    """
+    return synthesize_scene("sphere", "lambertian", rig, height, width, seed=0, name="lambertian-sphere", albedo=albedo)
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """One scene of a generated set.
+
+    Attributes:
+        name: unique scene name (also the file stem).
+        shape: one of ``SHAPES``.
+        material: one of ``MATERIALS``.
+        seed: seed of this scene's shape and material.
+    """
+
+    name: str
+    shape: str
+    material: str
+    seed: int
+
+
+# Train and test use different (shape, material) pairs. The test split holds out the bowl, capsule
+# and cylinder families entirely; its blob is a new random blob (other bumps) with another material.
+_DEFAULT_TRAIN = (
+    ("sphere", "lambertian"), ("blob", "svbrdf"), ("torus", "glossy"),
+    ("relief", "textured"), ("vase", "regions"), ("ellipsoid", "svbrdf"),
+)
+_DEFAULT_TEST = (("bowl", "svbrdf"), ("capsule", "glossy"), ("cylinder", "textured"), ("blob", "regions"))
+
+
+def default_scene_specs(seed: int = 0) -> dict[str, list[SceneSpec]]:
+    """The default train / test scene list (6 + 4 scenes) for a set seed.
+
+    Scene i of the set gets seed ``100 * seed + i``, so different set seeds give different scenes.
+
+    Returns:
+        ``{"train": [...], "test": [...]}`` of ``SceneSpec``.
+    """
+    if not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InputError(f"seed must be a non-negative integer, got {seed!r}")
+    specs: dict[str, list[SceneSpec]] = {}
+    index = 0
+    for split, pairs in (("train", _DEFAULT_TRAIN), ("test", _DEFAULT_TEST)):
+        specs[split] = []
+        for shape, material in pairs:
+            name = f"{split}-{index:02d}-{shape}-{material}"
+            specs[split].append(SceneSpec(name, shape, material, 100 * int(seed) + index))
+            index += 1
+    return specs
+
+
+def default_scene_set(rig: Rig, height: int = 128, width: int = 153, seed: int = 0,
+                      cast_shadows: bool = False) -> dict[str, list[Scene]]:
+    """Synthesise the default scene set in memory (about 35 MB per scene at 128 x 153 per stack).
+
+    Args:
+        rig: the capture rig.
+        height, width: image size in pixels.
+        seed: set seed (see ``default_scene_specs``); same seed, identical arrays.
+        cast_shadows: trace cast shadows (slower).
+
+    Returns:
+        ``{"train": [6 scenes], "test": [4 scenes]}``.
+    """
+    return {
+        split: [synthesize_scene(s.shape, s.material, rig, height, width, s.seed, cast_shadows, s.name) for s in specs]
+        for split, specs in default_scene_specs(seed).items()
+    }
+
+
+def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int = 153, seed: int = 0,
+                    cast_shadows: bool = False, progress: bool = True) -> Path:
+    """Synthesise the default scene set and write it, one scene in memory at a time.
+
+    Writes ``out_dir/train/NAME.npz`` and ``out_dir/test/NAME.npz`` (scene interchange format,
+    ``save_scene``) and ``out_dir/index.json`` listing every scene with its split, file, shape,
+    material and seed, plus the rig, size, set seed and generator. All files are written atomically.
+
+    Args:
+        out_dir: output folder (created if missing).
+        rig: the capture rig.
+        height, width: image size in pixels.
+        seed: set seed (see ``default_scene_specs``).
+        cast_shadows: trace cast shadows (slower).
+        progress: show a tqdm progress bar.
+
+    Returns:
+        Path of the written ``index.json``.
+    """
+    out_dir = Path(out_dir)
+    specs = default_scene_specs(seed)
+    jobs = [(split, spec) for split, split_specs in specs.items() for spec in split_specs]
+    index = {
+        "generator": GENERATOR,
+        "rig": rig.name,
+        "height": int(height),
+        "width": int(width),
+        "seed": int(seed),
+        "cast_shadows": bool(cast_shadows),
+        "splits": {split: [] for split in specs},
+    }
+    for split, spec in tqdm(jobs, desc="synthesising scenes", unit="scene", disable=not progress):
+        scene = synthesize_scene(spec.shape, spec.material, rig, height, width, spec.seed, cast_shadows, spec.name)
+        relative = Path(split) / f"{spec.name}.npz"
+        save_scene(scene, out_dir / relative)
+        index["splits"][split].append({
+            "name": spec.name, "file": relative.as_posix(), "shape": spec.shape,
+            "material": spec.material, "seed": spec.seed,
+        })
+    index_path = out_dir / "index.json"
+    write_json(index_path, index)
+    return index_path

@@ -1,0 +1,63 @@
+"""A contact sheet: every pattern of a set side by side, in pattern grid order."""
+from __future__ import annotations
+
+import math
+import textwrap
+from pathlib import Path
+
+import numpy as np
+from capture_sim.atomic import atomic_path
+from capture_sim.errors import InputError
+from patterns.io import validate_patterns
+
+_CAPTION = (
+    "Display set values P in [0, 1] before the display gamma, in pattern grid order: row 0 at the top, "
+    "column c growing with camera x (exported frames may mirror columns: see columns_mirrored in the manifest)."
+)
+
+
+def contact_sheet_figure(patterns, title: str, labels: list[str] | None = None, columns: int = 4):
+    """A figure with one panel per pattern.
+
+    Args:
+        patterns: (M, R, C, 3) display set values in [0, 1].
+        title: figure title (e.g. family, M and rig).
+        labels: optional M panel titles; default "pattern m".
+        columns: panels per row of the sheet.
+
+    Returns:
+        A matplotlib ``Figure`` (object API, no pyplot state).
+    """
+    from matplotlib.figure import Figure  # imported here: matplotlib costs a second at start-up
+
+    values = validate_patterns(patterns)
+    count, rows, cols, _ = values.shape
+    labels = labels or [f"pattern {m}" for m in range(count)]
+    if len(labels) != count:
+        raise InputError(f"contact sheet: {len(labels)} labels for {count} patterns")
+    columns = max(1, min(columns, count))
+    sheet_rows = math.ceil(count / columns)
+    panel_width = 3.2
+    panel_height = panel_width * rows / cols + 0.9
+    fig = Figure(figsize=(panel_width * columns, panel_height * sheet_rows + 1.2), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(sheet_rows, columns, squeeze=False)).ravel()
+    for m, ax in enumerate(axes):
+        if m >= count:
+            ax.set_axis_off()
+            continue
+        ax.imshow(values[m], interpolation="nearest", vmin=0.0, vmax=1.0, extent=(-0.5, cols - 0.5, rows - 0.5, -0.5))
+        ax.set_title(f"{labels[m]}  (mean {values[m].mean():.2f})", fontsize=9)
+        ax.set_xlabel("column c (superpixel)", fontsize=8)
+        ax.set_ylabel("row r (superpixel)", fontsize=8)
+        ax.tick_params(labelsize=7)
+    fig.suptitle(title)
+    fig.text(0.5, 0.0, textwrap.fill(_CAPTION, width=int(panel_width * columns * 14)), ha="center", va="bottom", fontsize=8)
+    return fig
+
+
+def save_contact_sheet(path: str | Path, patterns, title: str, labels: list[str] | None = None, dpi: int = 100) -> None:
+    """Write the contact sheet of ``patterns`` (M, R, C, 3) as a PNG file, atomically."""
+    fig = contact_sheet_figure(patterns, title, labels)
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=dpi)
+

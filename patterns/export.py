@@ -1,0 +1,273 @@
+"""Export pattern sets as display frames for the rig, with a manifest, and import them back.
+
+A frame is the image the display shows full-screen at its native resolution ``rig.panel_pixels``
+(height, width): every superpixel is a block of display pixels holding the pattern's set value P
+(before the display gamma; no gamma or colour management is applied), quantised to 8 or 16 bits.
+Block boundaries are integers: superpixel i of N along an axis of S pixels covers pixels
+[b_i, b_{i+1}) with b_i = floor(i * S / N + 1/2), so an exact multiple (2160 / 9 = 3840 / 16 = 240)
+gives equal blocks.
+
+Frame columns are mirrored when the rig says so. The display faces the object, so a viewer at the
+object sees camera +x on their left: the frame's left edge (display pixel column 0) shows the
+superpixel column with the largest camera x. On every preset (light_positions x grows with the
+column index c) frame block j therefore shows pattern column C - 1 - j; ``columns_mirrored`` derives
+this from the rig's calibration and the manifest records it. Rows are never flipped (row 0 is the top).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from capture_sim.atomic import write_bytes, write_json
+from capture_sim.errors import InputError
+from capture_sim.rig import Rig
+from patterns.contact_sheet import save_contact_sheet
+from patterns.io import check_patterns_match_rig, validate_patterns
+from patterns.png import encode_png, read_png
+
+MANIFEST_NAME = "manifest.json"
+CONTACT_SHEET_NAME = "contact_sheet.png"
+FORMAT = "displex-frames/1"
+_BIT_DEPTHS = (8, 16)
+
+
+def superpixel_boundaries(count: int, pixels: int) -> np.ndarray:
+    """(count + 1,) int64 pixel boundaries b_i = floor(i * pixels / count + 1/2) along one axis."""
+    if count < 1 or pixels < count:
+        raise InputError(f"cannot split {pixels} display pixels into {count} superpixels")
+    i = np.arange(count + 1, dtype=np.int64)
+    return (2 * i * pixels + count) // (2 * count)
+
+
+def columns_mirrored(rig: Rig) -> bool:
+    """Whether frame column blocks run opposite to the pattern's columns (see the module docstring).
+
+    True when the rig's last superpixel column lies at larger camera x than its first: seen from the
+    object, that column is on the left, where the frame starts.
+    """
+    x = rig.light_positions[..., 0]
+    return bool(x[:, -1].mean() > x[:, 0].mean())
+
+
+def render_frame(
+    pattern: np.ndarray, panel_pixels: tuple[int, int], bit_depth: int = 8, mirrored: bool = True
+) -> np.ndarray:
+    """One display frame of a pattern.
+
+    Args:
+        pattern: (R, C, 3) display set values in [0, 1].
+        panel_pixels: (height, width) of the display in pixels.
+        bit_depth: 8 or 16 bits per channel.
+        mirrored: frame column block j shows pattern column C - 1 - j (``columns_mirrored``).
+
+    Returns:
+        (height, width, 3) uint8 or uint16 frame: round(P * (2**bit_depth - 1)) per block.
+    """
+    if bit_depth not in _BIT_DEPTHS:
+        raise InputError(f"bit depth must be 8 or 16, got {bit_depth}")
+    rows, cols, _ = pattern.shape
+    height, width = panel_pixels
+    row_sizes = np.diff(superpixel_boundaries(rows, height))
+    col_sizes = np.diff(superpixel_boundaries(cols, width))
+    levels = 2**bit_depth - 1
+    quantised = np.round(np.asarray(pattern, dtype=np.float64) * levels).astype(np.uint8 if bit_depth == 8 else np.uint16)
+    if mirrored:
+        quantised = quantised[:, ::-1]
+    return np.repeat(np.repeat(quantised, row_sizes, axis=0), col_sizes, axis=1)
+
+
+def export_frames(
+    patterns,
+    rig: Rig,
+    out_dir: str | Path,
+    bit_depth: int = 8,
+    include_olat: bool = False,
+    rig_name: str | None = None,
+    compression_level: int = 2,
+) -> dict:
+    """Write display frames, a contact sheet and ``manifest.json`` for a pattern set.
+
+    Files (in ``out_dir``): ``pattern_000.png`` ... one per pattern in capture order; with
+    ``include_olat`` also ``black.png`` (all 0), ``white.png`` (all full value) and ``olat_000.png``
+    ... ``olat_{K-1}.png`` (superpixel k = r * C + c at full value, the rest 0), captured after the
+    patterns in that order; ``contact_sheet.png``; ``manifest.json`` last, so a folder with a
+    manifest is complete.
+
+    Args:
+        patterns: (M, R, C, 3) display set values in [0, 1] on the rig's R x C grid.
+        rig: the rig (grid, ``panel_pixels``, gamma, exposure).
+        out_dir: output folder (created if needed).
+        bit_depth: 8 (default) or 16 bits per channel.
+        include_olat: also write the black, white and OLAT frames.
+        rig_name: name recorded in the manifest (default ``rig.name``).
+        compression_level: zlib level 0..9 for the PNG files.
+
+    Returns:
+        The manifest dict, as written: format, rig, rows, cols, num_patterns, panel_pixels,
+        row_boundaries and col_boundaries (display pixels, in frame order), columns_mirrored,
+        bit_depth, value_encoding, exposure (number or "auto"), gamma, capture_order (file names),
+        frames (per file: file, kind, index/light/row/col, sha256), patterns (nested lists, M x R x
+        C x 3), contact_sheet.
+    """
+    values = validate_patterns(patterns)
+    check_patterns_match_rig(values, rig.rows, rig.cols)
+    if bit_depth not in _BIT_DEPTHS:
+        raise InputError(f"bit depth must be 8 or 16, got {bit_depth}")
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"export folder is a file: {out_dir}")
+    height, width = (int(v) for v in rig.panel_pixels)
+    row_bounds = superpixel_boundaries(rig.rows, height)
+    col_bounds = superpixel_boundaries(rig.cols, width)
+    mirrored = columns_mirrored(rig)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    # A stale manifest would describe frames about to be replaced; without it the folder reads as incomplete.
+    (out_dir / MANIFEST_NAME).unlink(missing_ok=True)
+
+    frames = []
+
+    def write_frame(file_name: str, pattern: np.ndarray, **description) -> None:
+        data = encode_png(render_frame(pattern, (height, width), bit_depth, mirrored), compression_level)
+        write_bytes(out_dir / file_name, data)
+        frames.append({"file": file_name, **description, "sha256": hashlib.sha256(data).hexdigest()})
+
+    for m, pattern in enumerate(values):
+        write_frame(f"pattern_{m:03d}.png", pattern, kind="pattern", index=m)
+    if include_olat:
+        grid = (rig.rows, rig.cols, 3)
+        write_frame("black.png", np.zeros(grid, np.float32), kind="black")
+        write_frame("white.png", np.ones(grid, np.float32), kind="white")
+        for light in range(rig.num_lights):
+            row, col = divmod(light, rig.cols)
+            one_lit = np.zeros(grid, np.float32)
+            one_lit[row, col] = 1.0
+            write_frame(f"olat_{light:03d}.png", one_lit, kind="olat", light=light, row=row, col=col)
+
+    name = rig_name or rig.name
+    save_contact_sheet(out_dir / CONTACT_SHEET_NAME, values, f"{len(values)} patterns for rig {name} (pattern grid order)")
+    manifest = {
+        "format": FORMAT,
+        "rig": name,
+        "rows": rig.rows,
+        "cols": rig.cols,
+        "num_patterns": len(values),
+        "panel_pixels": [height, width],
+        "row_boundaries": row_bounds.tolist(),
+        "col_boundaries": col_bounds.tolist(),
+        "columns_mirrored": mirrored,
+        "bit_depth": bit_depth,
+        "value_encoding": "round(P * (2**bit_depth - 1)) per superpixel block; P is the set value before the display gamma",
+        "exposure": "auto" if rig.exposure is None else rig.exposure,
+        "gamma": rig.gamma,
+        "capture_order": [frame["file"] for frame in frames],
+        "frames": frames,
+        "patterns": _float32_lists(values),
+        "contact_sheet": CONTACT_SHEET_NAME,
+    }
+    write_json(out_dir / MANIFEST_NAME, manifest)
+    return manifest
+
+
+def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.ndarray, dict]:
+    """Recover a pattern set from exported frames.
+
+    Reads ``manifest.json``, verifies the SHA-256 of every frame it lists, reads the pattern frames
+    and averages the central half of every superpixel block (undoing the column mirroring).
+
+    Args:
+        frames_dir: folder written by ``export_frames``.
+        rig: optional rig whose grid the patterns must match.
+
+    Returns:
+        patterns: (M, R, C, 3) float32 set values in [0, 1], within half a quantisation step
+            (1/510 at 8 bits) of the exported ones.
+        meta: the manifest dict.
+    """
+    frames_dir = Path(frames_dir)
+    manifest = _read_manifest(frames_dir)
+    rows, cols = manifest["rows"], manifest["cols"]
+    height, width = manifest["panel_pixels"]
+    bit_depth = manifest["bit_depth"]
+    if bit_depth not in _BIT_DEPTHS:
+        raise InputError(f"{frames_dir}: manifest bit_depth must be 8 or 16, got {bit_depth}")
+    for frame in manifest["frames"]:
+        path = frames_dir / frame["file"]
+        if not path.is_file():
+            raise InputError(f"{frames_dir}: frame {frame['file']} listed in the manifest is missing")
+        if hashlib.sha256(path.read_bytes()).hexdigest() != frame.get("sha256"):
+            raise InputError(f"{frames_dir}: frame {frame['file']} does not match its SHA-256 in the manifest")
+    pattern_frames = sorted((f for f in manifest["frames"] if f.get("kind") == "pattern"), key=lambda f: f["index"])
+    if [f["index"] for f in pattern_frames] != list(range(manifest["num_patterns"])):
+        raise InputError(f"{frames_dir}: manifest lists pattern frames {[f['index'] for f in pattern_frames]}, expected 0..{manifest['num_patterns'] - 1}")
+    row_bounds = superpixel_boundaries(rows, height)
+    col_bounds = superpixel_boundaries(cols, width)
+    levels = 2**bit_depth - 1
+    recovered = np.empty((len(pattern_frames), rows, cols, 3), dtype=np.float64)
+    for m, frame in enumerate(pattern_frames):
+        image = read_png(frames_dir / frame["file"])
+        if image.shape != (height, width, 3) or image.dtype.itemsize * 8 != bit_depth:
+            raise InputError(
+                f"{frames_dir}: frame {frame['file']} is {image.shape} at {image.dtype.itemsize * 8} bits, "
+                f"manifest says ({height}, {width}, 3) at {bit_depth} bits"
+            )
+        recovered[m] = _block_means(image, row_bounds, col_bounds) / levels
+    if manifest["columns_mirrored"]:
+        recovered = recovered[:, :, ::-1]
+    patterns = validate_patterns(recovered, f"{frames_dir}: recovered patterns")
+    listed = np.asarray(manifest["patterns"], dtype=np.float64)
+    if listed.shape != patterns.shape or np.abs(listed - patterns).max() > 0.5 / levels + 1e-6:
+        raise InputError(f"{frames_dir}: the frames do not show the pattern values listed in the manifest")
+    if rig is not None:
+        check_patterns_match_rig(patterns, rig.rows, rig.cols)
+    return patterns, manifest
+
+
+def _read_manifest(frames_dir: Path) -> dict:
+    path = frames_dir / MANIFEST_NAME
+    if not path.is_file():
+        raise InputError(f"no {MANIFEST_NAME} in {frames_dir} (not an exported frame folder, or an interrupted export)")
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as err:
+        raise InputError(f"{path}: not a readable manifest ({err})") from None
+    required = ("format", "rows", "cols", "num_patterns", "panel_pixels", "bit_depth", "columns_mirrored", "frames", "patterns")
+    missing = [key for key in required if not isinstance(manifest, dict) or key not in manifest]
+    if missing:
+        raise InputError(f"{path}: manifest is missing {', '.join(missing)}")
+    if manifest["format"] != FORMAT:
+        raise InputError(f"{path}: unknown manifest format {manifest['format']!r} (expected {FORMAT})")
+    sizes = [manifest["rows"], manifest["cols"], manifest["num_patterns"], *manifest["panel_pixels"]]
+    if len(sizes) != 5 or not all(isinstance(v, int) and v >= 1 for v in sizes) or not isinstance(manifest["frames"], list):
+        raise InputError(f"{path}: manifest rows, cols, num_patterns, panel_pixels or frames are malformed")
+    for frame in manifest["frames"]:
+        if not isinstance(frame, dict) or not isinstance(frame.get("file"), str) or Path(frame["file"]).name != frame["file"]:
+            raise InputError(f"{path}: every manifest frame needs a plain file name, got {frame!r}")
+        if frame.get("kind") == "pattern" and not isinstance(frame.get("index"), int):
+            raise InputError(f"{path}: pattern frame {frame['file']} has no integer index")
+    return manifest
+
+
+def _block_means(image: np.ndarray, row_bounds: np.ndarray, col_bounds: np.ndarray) -> np.ndarray:
+    """(R, C, 3) mean of the central half of every block, away from edges a display might blur."""
+    rows, cols = len(row_bounds) - 1, len(col_bounds) - 1
+    means = np.empty((rows, cols, 3), dtype=np.float64)
+    row_ranges = [_central(row_bounds[i], row_bounds[i + 1]) for i in range(rows)]
+    col_ranges = [_central(col_bounds[j], col_bounds[j + 1]) for j in range(cols)]
+    for i, (top, bottom) in enumerate(row_ranges):
+        for j, (left, right) in enumerate(col_ranges):
+            means[i, j] = image[top:bottom, left:right].reshape(-1, 3).mean(axis=0)
+    return means
+
+
+def _central(start: int, stop: int) -> tuple[int, int]:
+    margin = (stop - start) // 4
+    return int(start + margin), int(stop - margin)
+
+
+def _float32_lists(values: np.ndarray) -> list:
+    """Nested lists of the shortest decimals that read back as the same float32 values."""
+    flat = [float(str(v)) for v in values.astype(np.float32).ravel()]
+    return np.asarray(flat, dtype=np.float64).reshape(values.shape).tolist()

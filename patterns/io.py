@@ -1,0 +1,105 @@
+"""Pattern files (DESIGN section 7): ``.npz`` with ``patterns`` and a JSON ``meta``, or a plain ``.npy``.
+
+A pattern set is P with shape (M, R, C, 3): display set values in [0, 1] before the display gamma,
+row 0 at the top of the panel. Files are recognised by their contents, not their suffix.
+"""
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from capture_sim.atomic import write_bytes
+from capture_sim.errors import InputError, check_array
+
+_NPY_MAGIC = b"\x93NUMPY"
+_ZIP_MAGIC = b"PK"
+
+
+def validate_patterns(patterns, name: str = "patterns") -> np.ndarray:
+    """Check a pattern set and return it as a float32 numpy array.
+
+    Args:
+        patterns: (M, R, C, 3) numpy array or torch tensor of display set values in [0, 1].
+        name: what the patterns are, for error messages (e.g. the file path).
+
+    Returns:
+        (M, R, C, 3) float32 numpy array (a copy for tensors, possibly shared for float32 arrays).
+    """
+    if isinstance(patterns, torch.Tensor):
+        patterns = patterns.detach().cpu().numpy()
+    if not isinstance(patterns, np.ndarray):
+        raise InputError(f"{name}: expected an array of shape (M, R, C, 3), got {type(patterns).__name__}")
+    if patterns.dtype.kind not in "fiub":
+        raise InputError(f"{name}: expected real numbers, got dtype {patterns.dtype}")
+    check_array(name, patterns, ("M", "R", "C", 3), value_range=(0.0, 1.0))
+    if 0 in patterns.shape:
+        raise InputError(f"{name}: expected at least one pattern of at least 1 x 1 superpixels, got shape {patterns.shape}")
+    return np.ascontiguousarray(patterns, dtype=np.float32)
+
+
+def save_patterns(path: str | Path, patterns, meta: dict | None = None) -> None:
+    """Write a pattern file (.npz) atomically.
+
+    Args:
+        path: output file; written as .npz whatever its suffix.
+        patterns: (M, R, C, 3) display set values in [0, 1] (numpy array or torch tensor).
+        meta: JSON-serialisable description: family, parameters, rig, how the patterns were made.
+    """
+    values = validate_patterns(patterns)
+    try:
+        meta_json = json.dumps(meta or {})
+    except (TypeError, ValueError) as err:
+        raise InputError(f"pattern meta must be JSON-serialisable ({err})") from None
+    buffer = io.BytesIO()
+    np.savez(buffer, patterns=values, meta=np.array(meta_json))
+    write_bytes(path, buffer.getvalue())
+
+
+def load_patterns(path: str | Path) -> tuple[np.ndarray, dict]:
+    """Read and validate a pattern file.
+
+    Args:
+        path: a .npz written by ``save_patterns`` (``patterns`` and optional ``meta``), or a plain
+            .npy holding the (M, R, C, 3) array.
+
+    Returns:
+        patterns: (M, R, C, 3) float32 display set values in [0, 1].
+        meta: the file's meta dict ({} for a plain .npy).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"pattern file not found: {path}")
+    with path.open("rb") as handle:
+        magic = handle.read(len(_NPY_MAGIC))
+    meta: dict = {}
+    try:
+        if magic.startswith(_NPY_MAGIC):
+            values = np.load(path, allow_pickle=False)
+        elif magic.startswith(_ZIP_MAGIC):
+            with np.load(path, allow_pickle=False) as data:
+                if "patterns" not in data:
+                    raise InputError(f"{path}: pattern .npz has no 'patterns' array")
+                values = data["patterns"]
+                if "meta" in data:
+                    meta = json.loads(str(data["meta"]))
+        else:
+            raise InputError(f"{path}: not a pattern file (.npz or .npy)")
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+        if isinstance(err, InputError):
+            raise
+        raise InputError(f"{path}: not a readable pattern file ({err})") from None
+    if not isinstance(meta, dict):
+        raise InputError(f"{path}: pattern meta must be a JSON object")
+    return validate_patterns(values, str(path)), meta
+
+
+def check_patterns_match_rig(patterns, rows: int, cols: int) -> None:
+    """Raise ``InputError`` unless ``patterns`` (M, R, C, 3) is on the rig's ``rows`` x ``cols`` grid."""
+    shape = tuple(patterns.shape)
+    if len(shape) != 4 or shape[1:3] != (rows, cols):
+        raise InputError(f"patterns have shape {shape} but the rig's display grid is {rows} x {cols} (expected (M, {rows}, {cols}, 3))")

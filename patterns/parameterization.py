@@ -1,0 +1,45 @@
+"""Unconstrained logits for learning pattern values, and back.
+
+Learning optimises logits z with P = sigmoid(z), which keeps every set value in (0, 1) without
+projection. Exact 0 or 1 values (OLAT, binary halves, the default lo = 0 / hi = 1) would map to
+infinite logits whose gradient sigmoid'(z) is zero, so an optimiser could never move them (the
+published code had this problem); they are first clamped to [eps, 1 - eps].
+"""
+from __future__ import annotations
+
+import torch
+
+from capture_sim.errors import InputError, check_array
+
+
+def patterns_to_logits(patterns: torch.Tensor, eps: float = 1e-3) -> torch.Tensor:
+    """Logits of set values, with values clamped to [eps, 1 - eps] so every logit stays movable.
+
+    Args:
+        patterns: (M, R, C, 3) (or any shape) display set values in [0, 1], float tensor or array.
+        eps: clamp margin in (0, 0.5); 1e-3 gives logits within about +-6.9.
+
+    Returns:
+        Logits z = log(p / (1 - p)) of the clamped values, same shape; float32 unless the input is
+        a float64 tensor.
+
+    Example:
+        >>> patterns_to_logits(torch.tensor([0.0, 0.5, 1.0]))
+        tensor([-6.9068,  0.0000,  6.9068])
+    """
+    check_array("patterns", patterns, value_range=(0.0, 1.0))
+    if not 0.0 < eps < 0.5:
+        raise InputError(f"eps must lie in (0, 0.5), got {eps}")
+    values = torch.as_tensor(patterns)
+    if not values.is_floating_point() or values.dtype not in (torch.float32, torch.float64):
+        values = values.to(torch.float32)
+    return torch.logit(values.clamp(eps, 1.0 - eps))
+
+
+def logits_to_patterns(logits: torch.Tensor) -> torch.Tensor:
+    """Set values sigmoid(z) in (0, 1) from logits (any shape, e.g. (M, R, C, 3)); same shape."""
+    check_array("logits", logits)
+    values = torch.as_tensor(logits)
+    if values.dtype not in (torch.float32, torch.float64):
+        values = values.to(torch.float32)
+    return torch.sigmoid(values)

@@ -1,0 +1,187 @@
+import hashlib
+import json
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+
+from capture_sim.errors import InputError
+from capture_sim.rig import available_rigs, load_rig
+from patterns.export import columns_mirrored, export_frames, import_frames, render_frame, superpixel_boundaries
+from patterns.families import make_patterns
+from patterns.png import read_png, write_png
+
+
+@pytest.fixture
+def small_rig():
+    """The reference rig with a 90 x 160 pixel panel: 10 x 10 pixel superpixels, fast to export."""
+    return load_rig("dir-odyssey-ark").replace(panel_pixels=(90, 160))
+
+
+def _patterns(rig, num_patterns=3, seed=0):
+    return np.random.default_rng(seed).uniform(0, 1, (num_patterns, rig.rows, rig.cols, 3)).astype(np.float32)
+
+
+def test_boundaries_split_pixels_evenly():
+    np.testing.assert_array_equal(superpixel_boundaries(9, 2160), np.arange(10) * 240)
+    bounds = superpixel_boundaries(16, 37)
+    sizes = np.diff(bounds)
+    assert bounds[0] == 0 and bounds[-1] == 37
+    assert sizes.max() - sizes.min() <= 1
+    np.testing.assert_array_equal(bounds, [int(np.floor(i * 37 / 16 + 0.5)) for i in range(17)])
+    with pytest.raises(InputError):
+        superpixel_boundaries(16, 15)
+
+
+def test_every_preset_mirrors_columns():
+    for name in available_rigs():
+        assert columns_mirrored(load_rig(name))
+    rig = load_rig()
+    flipped = rig.replace(light_positions=rig.light_positions[:, ::-1].copy())
+    assert not columns_mirrored(flipped)
+
+
+def test_frame_matches_plain_pixel_loop():
+    rows, cols, height, width = 3, 5, 8, 13  # not multiples: uneven blocks
+    pattern = np.random.default_rng(2).uniform(0, 1, (rows, cols, 3))
+    frame = render_frame(pattern, (height, width), bit_depth=8, mirrored=True)
+    assert frame.shape == (height, width, 3) and frame.dtype == np.uint8
+    for y in range(height):
+        for x in range(width):
+            row = min(i for i in range(rows) if y < np.floor((i + 1) * height / rows + 0.5))
+            block = min(j for j in range(cols) if x < np.floor((j + 1) * width / cols + 0.5))
+            expected = np.round(pattern[row, cols - 1 - block] * 255)
+            np.testing.assert_array_equal(frame[y, x], expected)
+
+
+def test_export_writes_frames_manifest_and_contact_sheet(tmp_path, small_rig):
+    patterns = _patterns(small_rig)
+    manifest = export_frames(patterns, small_rig, tmp_path / "out", rig_name="lab rig")
+    out = tmp_path / "out"
+    on_disk = json.loads((out / "manifest.json").read_text())
+    assert on_disk == manifest
+    assert manifest["rig"] == "lab rig"
+    assert (manifest["rows"], manifest["cols"], manifest["num_patterns"]) == (9, 16, 3)
+    assert manifest["bit_depth"] == 8 and manifest["exposure"] == "auto" and manifest["gamma"] == 2.2
+    assert manifest["capture_order"] == ["pattern_000.png", "pattern_001.png", "pattern_002.png"]
+    np.testing.assert_array_equal(np.asarray(manifest["patterns"], dtype=np.float32), patterns)
+    for frame in manifest["frames"]:
+        data = (out / frame["file"]).read_bytes()
+        assert hashlib.sha256(data).hexdigest() == frame["sha256"]
+        image = read_png(out / frame["file"])
+        assert image.shape == (90, 160, 3) and image.dtype == np.uint8
+    first = read_png(out / "pattern_000.png")
+    # Superpixel (0, 0) sits at the frame's top-right block because columns are mirrored.
+    np.testing.assert_array_equal(first[:10, -10:], np.broadcast_to(np.round(patterns[0, 0, 0] * 255), (10, 10, 3)))
+    sheet = mpimg.imread(out / "contact_sheet.png")
+    assert sheet.ndim == 3 and sheet.shape[0] > 100
+
+
+def test_fixed_exposure_is_recorded(tmp_path, small_rig):
+    manifest = export_frames(_patterns(small_rig, 1), small_rig.replace(exposure=0.25), tmp_path)
+    assert manifest["exposure"] == 0.25
+
+
+def test_olat_sequence(tmp_path, small_rig):
+    manifest = export_frames(_patterns(small_rig, 1), small_rig, tmp_path, include_olat=True)
+    names = manifest["capture_order"]
+    assert names[:3] == ["pattern_000.png", "black.png", "white.png"]
+    assert names[3:] == [f"olat_{k:03d}.png" for k in range(small_rig.num_lights)]
+    assert read_png(tmp_path / "black.png").max() == 0
+    assert read_png(tmp_path / "white.png").min() == 255
+    olat = next(f for f in manifest["frames"] if f["file"] == "olat_017.png")
+    assert (olat["light"], olat["row"], olat["col"]) == (17, 1, 1)
+    image = read_png(tmp_path / "olat_017.png")
+    lit = np.argwhere(image[..., 0] == 255)
+    # Row 1 -> pixels 10..19; pattern column 1 -> frame block 14 -> pixels 140..149.
+    assert lit.min(axis=0).tolist() == [10, 140] and lit.max(axis=0).tolist() == [19, 149]
+    assert len(lit) == 100
+
+
+@pytest.mark.parametrize("bit_depth, step", [(8, 1 / 255), (16, 1 / 65535)])
+def test_round_trip_within_one_step(tmp_path, small_rig, bit_depth, step):
+    patterns = _patterns(small_rig, 4, seed=bit_depth)
+    export_frames(patterns, small_rig, tmp_path, bit_depth=bit_depth)
+    recovered, meta = import_frames(tmp_path, rig=small_rig)
+    assert recovered.shape == patterns.shape and recovered.dtype == np.float32
+    assert np.abs(recovered - patterns).max() <= 0.5 * step + 1e-6
+    assert meta["bit_depth"] == bit_depth
+    if bit_depth == 16:
+        assert read_png(tmp_path / "pattern_000.png").dtype == np.uint16
+
+
+def test_round_trip_on_uneven_panel(tmp_path):
+    rig = load_rig("panel-32in-5x10").replace(panel_pixels=(23, 47))
+    patterns = make_patterns("tri_gradient", 3, rig.rows, rig.cols).numpy()
+    export_frames(patterns, rig, tmp_path)
+    recovered, _ = import_frames(tmp_path)
+    assert np.abs(recovered - patterns).max() <= 0.5 / 255 + 1e-6
+
+
+def test_full_resolution_frame(tmp_path):
+    rig = load_rig()
+    patterns = make_patterns("olat", 1, preset="ddps")  # lit superpixel (0, 15)
+    export_frames(patterns, rig, tmp_path)
+    frame = read_png(tmp_path / "pattern_000.png")
+    assert frame.shape == (2160, 3840, 3) and frame.dtype == np.uint8
+    on_level, off_level = (int(np.round(float(np.float32(v)) * 255)) for v in (0.9, 0.1))  # 229, 26
+    lit = np.argwhere(frame[..., 0] == on_level)
+    # Pattern column 15 is the frame's leftmost 240 x 240 block.
+    assert lit.min(axis=0).tolist() == [0, 0] and lit.max(axis=0).tolist() == [239, 239]
+    assert len(lit) == 240 * 240
+    assert np.all(frame[frame[..., 0] != on_level] == off_level)
+
+
+def test_export_refuses_bad_patterns(tmp_path, small_rig):
+    with pytest.raises(InputError, match=r"\[0, 1\]"):
+        export_frames(np.full((1, 9, 16, 3), 1.2, np.float32), small_rig, tmp_path)
+    with pytest.raises(InputError, match="9 x 16"):
+        export_frames(np.zeros((1, 4, 8, 3), np.float32), small_rig, tmp_path)
+    with pytest.raises(InputError, match="bit depth"):
+        export_frames(_patterns(small_rig, 1), small_rig, tmp_path, bit_depth=12)
+    with pytest.raises(InputError, match="split"):
+        export_frames(_patterns(small_rig, 1), small_rig.replace(panel_pixels=(8, 160)), tmp_path)
+    assert not (tmp_path / "manifest.json").exists()
+
+
+def test_import_refuses_tampered_or_incomplete_folders(tmp_path, small_rig):
+    with pytest.raises(InputError, match="manifest.json"):
+        import_frames(tmp_path / "nothing")
+    export_frames(_patterns(small_rig, 2), small_rig, tmp_path)
+    other = load_rig("panel-55in-4x8")
+    with pytest.raises(InputError, match="4 x 8"):
+        import_frames(tmp_path, rig=other)
+
+    frame = read_png(tmp_path / "pattern_001.png")
+    frame[0, 0] = 0 if frame[0, 0, 0] else 255
+    write_png(tmp_path / "pattern_001.png", frame)
+    with pytest.raises(InputError, match="SHA-256"):
+        import_frames(tmp_path)
+
+    (tmp_path / "pattern_001.png").unlink()
+    with pytest.raises(InputError, match="missing"):
+        import_frames(tmp_path)
+
+    export_frames(_patterns(small_rig, 2), small_rig, tmp_path)
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    manifest["patterns"][0][0][0] = [0.0, 0.0, 0.0] if manifest["patterns"][0][0][0][0] > 0.5 else [1.0, 1.0, 1.0]
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(InputError, match="do not show"):
+        import_frames(tmp_path)
+
+    del manifest["frames"]
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(InputError, match="missing frames"):
+        import_frames(tmp_path)
+    (tmp_path / "manifest.json").write_text("{not json")
+    with pytest.raises(InputError, match="not a readable manifest"):
+        import_frames(tmp_path)
+
+
+def test_import_refuses_frame_names_outside_the_folder(tmp_path, small_rig):
+    export_frames(_patterns(small_rig, 1), small_rig, tmp_path)
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    manifest["frames"][0]["file"] = "../pattern_000.png"
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(InputError, match="plain file name"):
+        import_frames(tmp_path)
