@@ -121,6 +121,7 @@ def load_scene(path: str | Path) -> Scene:
         if required not in arrays:
             raise InputError(f"{path}: scene is missing required array '{required}'")
     meta.setdefault("name", path.stem)
+    meta["file"] = str(path)  # in memory only: outputs are named after the file the user gave
     return Scene(meta=meta, **arrays)
 
 

@@ -6,6 +6,7 @@ reset before the measured phase where Linux allows it.
 """
 from __future__ import annotations
 
+import math
 import platform
 import statistics
 import time
@@ -18,9 +19,22 @@ import torch
 from capture_sim.atomic import write_json
 from capture_sim.errors import InputError
 from capture_sim.rig import load_rig
-from capture_sim.simulator import light_transport, simulate
+from capture_sim.geometry import pixel_rays
+from capture_sim.render import render_olat
+from capture_sim.simulator import LightTransport, light_transport, simulate
+from patterns.families import make_patterns
+from patterns.parameterization import logits_to_patterns, patterns_to_logits
+from reconstruct.photometric_stereo import solve_ps
+from train.capture import capture_scene
+from train.learn import TrainConfig, normal_loss
+from train.scene_pixels import ScenePixels
 
 FULL_SIZE = (512, 612)
+PUBLISHED_PS_FORWARD_S = 1.2
+"""Forward solve of the published implementation, M = 4 over 108 000 pixels, on this kind of machine
+(issue 3; we cannot run it here, so it is quoted, and scaled linearly to our pixel count)."""
+PUBLISHED_TRAIN_STEP_S = 6.0
+"""One training step of the published implementation, M = 4 over 100 000 pixels (issue 4, quoted)."""
 
 
 def median_seconds(work: Callable[[], object], repeats: int = 5, warmup: int = 1) -> float:
@@ -106,7 +120,108 @@ def bench_sim(num_patterns: int = 4, sampled_pixels: int = 100_000, repeats: int
     }
 
 
-BENCHMARKS: dict[str, Callable[..., dict]] = {"sim": bench_sim}
+def full_frame_pixels(height: int = FULL_SIZE[0], width: int = FULL_SIZE[1], chunk: int = 16384) -> ScenePixels:
+    """A Lambertian bumpy wall filling the whole frame at the working distance (every pixel valid).
+
+    Its normals tilt by up to ~35 degrees in smooth waves so that pixels see different lights and
+    attached shadows, as an object would; used to time the solvers on all 512 x 612 pixels.
+    """
+    rig = load_rig().with_resolution(height, width)
+    rays = pixel_rays(rig.camera.matrix(), height, width).reshape(-1, 3)
+    v, u = torch.meshgrid(torch.linspace(0, 6 * math.pi, height), torch.linspace(0, 8 * math.pi, width), indexing="ij")
+    depth = rig.working_distance + 0.01 * torch.sin(u).reshape(-1) * torch.cos(v).reshape(-1)
+    points = depth[:, None] * rays
+    normal = torch.stack([0.5 * torch.sin(u), 0.5 * torch.cos(v), -torch.ones_like(u)], dim=-1).reshape(-1, 3)
+    normal = normal / normal.norm(dim=-1, keepdim=True)
+    matrix = torch.empty(3, rig.num_lights, height * width)
+    albedo = torch.tensor([[0.7, 0.5, 0.4]])
+    for start in range(0, height * width, chunk):
+        block = slice(start, start + chunk)
+        diffuse, _ = render_olat(points[block], normal[block], rig.lights(), torch.ones(points[block].shape[0], 1), albedo, torch.zeros(1), torch.ones(1), rig.falloff)
+        matrix[:, :, block] = diffuse.permute(2, 0, 1)
+    transport = LightTransport(matrix, torch.arange(height * width), height, width)
+    return ScenePixels("full-frame-wall", rig, transport, points, normal, np.ones((height, width), dtype=bool))
+
+
+def bench_ps(num_patterns: int = 4, repeats: int = 5, seed: int = 0) -> dict:
+    """Forward+backward of the analytic photometric stereo on all 512 x 612 pixels, M patterns.
+
+    Gradients flow to the patterns through the effective emission and the captures, as in
+    learning. The simulated captures are made once, outside the timed region.
+    """
+    pixels = full_frame_pixels()
+    patterns = make_patterns("mono_gradient", num_patterns).float()
+    with torch.no_grad():
+        capture = capture_scene(pixels, patterns, 1.0, "auto", torch.Generator().manual_seed(seed))
+    lights, falloff = pixels.lights(), pixels.rig.falloff
+
+    def forward_backward():
+        captures = capture.captures.clone().requires_grad_()
+        emission = capture.emission.clone().requires_grad_()
+        result = solve_ps(captures, emission, pixels.points, lights, falloff)
+        (result.normal.sum() + result.albedo.sum()).backward()
+        return result
+
+    result = forward_backward()
+    peak_reset = reset_peak_rss()
+    seconds = median_seconds(forward_backward, repeats, warmup=0)
+    peak_mb = peak_rss_mb()
+    forward = median_seconds(lambda: solve_ps(capture.captures, capture.emission, pixels.points, lights, falloff), repeats, warmup=0)
+    errors = torch.rad2deg(torch.acos((result.normal.detach() * pixels.normal).sum(-1).clamp(-1, 1)))
+    return {
+        "target": "ps",
+        "M": num_patterns,
+        "pixels": pixels.num_pixels,
+        "lights": pixels.transport.num_lights,
+        "full_fwd_bwd_s": seconds,
+        "full_fwd_s": forward,
+        "peak_rss_mb": peak_mb,
+        "peak_measured": "solver phase (VmHWM reset before it)" if peak_reset else "whole process",
+        "mae_deg_default_noise": float(errors.mean()),
+        "published_fwd_s_108k_pixels": PUBLISHED_PS_FORWARD_S,
+        "speedup_vs_published_fwd_same_pixels": PUBLISHED_PS_FORWARD_S * pixels.num_pixels / 108_000 / seconds,
+        "repeats": repeats,
+        "machine": machine_info(),
+    }
+
+
+def bench_train(num_patterns: int = 4, sampled_pixels: int = 100_000, repeats: int = 5, seed: int = 0) -> dict:
+    """One learning step (simulate + reconstruct + backward) for M patterns over sampled pixels."""
+    pixels = full_frame_pixels()
+    columns = torch.randperm(pixels.num_pixels, generator=torch.Generator().manual_seed(seed))[:sampled_pixels]
+    logits = patterns_to_logits(make_patterns("tri_random", num_patterns, seed=seed)).requires_grad_()
+    config = TrainConfig(num_patterns=num_patterns)
+
+    def step():
+        logits.grad = None
+        capture = capture_scene(pixels, logits_to_patterns(logits), 1.0, "auto", torch.Generator().manual_seed(seed), columns)
+        result = solve_ps(capture.captures, capture.emission, pixels.points[columns], pixels.lights(), pixels.rig.falloff)
+        normal_loss(result.normal, pixels.normal[columns], config.loss).backward()
+
+    step()
+    reset_peak_rss()
+    seconds = median_seconds(step, repeats, warmup=0)
+    return {
+        "target": "train",
+        "M": num_patterns,
+        "sampled_pixels": sampled_pixels,
+        "step_s": seconds,
+        "published_step_s": PUBLISHED_TRAIN_STEP_S,
+        "speedup_vs_published": PUBLISHED_TRAIN_STEP_S / seconds,
+        "peak_rss_mb": peak_rss_mb(),
+        "repeats": repeats,
+        "machine": machine_info(),
+    }
+
+
+def bench_invrender(repeats: int = 5) -> dict:
+    """Inverse-renderer speed (see ``train.invrender_command.bench_invrender``)."""
+    from train.invrender_command import bench_invrender as run
+
+    return {"target": "invrender", **run(repeats=repeats), "machine": machine_info()}
+
+
+BENCHMARKS: dict[str, Callable[..., dict]] = {"sim": bench_sim, "ps": bench_ps, "train": bench_train, "invrender": bench_invrender}
 
 
 def run_bench(target: str, json_path: Path | None, repeats: int = 5) -> dict:

@@ -65,6 +65,43 @@ def build_parser() -> argparse.ArgumentParser:
     listing.add_argument("--M", type=int, default=4, dest="num_patterns")
     listing.set_defaults(handler=_patterns_list)
 
+    evaluate = commands.add_parser("evaluate", help="reconstruct scenes under a pattern set and measure normal errors")
+    evaluate.add_argument("--scenes", type=Path, nargs="+", default=(), help="scene files or folders (default: synthetic test split)")
+    evaluate.add_argument("--patterns", required=True, help="pattern file, or 'olat' for the full OLAT stack")
+    evaluate.add_argument("--method", choices=("ps", "woodham"), default="ps")
+    evaluate.add_argument("--noise", choices=NOISE_CHOICES, default="default")
+    evaluate.add_argument("--exposure", default="auto")
+    evaluate.add_argument("--rig", default=DEFAULT_RIG)
+    evaluate.add_argument("--seed", type=int, default=0)
+    evaluate.add_argument("--json", type=Path, default=None, help="write results JSON here")
+    evaluate.add_argument("--out", type=Path, default=None, help="folder for normal maps, error maps, summary figure")
+    evaluate.set_defaults(handler=_evaluate)
+
+    train = commands.add_parser("train", help="learn patterns end to end through the photometric stereo")
+    train.add_argument("--config", type=Path, default=None, help="TOML in configs/train/ (flags override it)")
+    train.add_argument("--M", type=int, dest="num_patterns", default=None)
+    train.add_argument("--init", default=None, help="family name or pattern file to start from")
+    train.add_argument("--scenes", type=Path, nargs="+", default=None, help="training scenes (default: synthetic train split)")
+    train.add_argument("--steps", type=int, default=None)
+    train.add_argument("--seed", type=int, default=None)
+    train.add_argument("--logdir", type=Path, default=None, help="TensorBoard log folder")
+    train.add_argument("--rerender-weight", type=float, default=None, help="weight of the re-rendering loss (0 = normals only)")
+    train.add_argument("--out", type=Path, required=True, help="learned pattern file (.npz)")
+    train.set_defaults(handler=_train)
+
+    export = commands.add_parser("export", help="write display frames, manifest and contact sheet for the rig")
+    export.add_argument("--patterns", type=Path, required=True)
+    export.add_argument("--rig", default=DEFAULT_RIG)
+    export.add_argument("--out", type=Path, required=True)
+    export.add_argument("--bit-depth", type=int, choices=(8, 16), default=8)
+    export.add_argument("--olat", action="store_true", help="also write the OLAT capture sequence (K frames, black, white)")
+    export.set_defaults(handler=_export)
+
+    import_frames = commands.add_parser("import-frames", help="recover patterns from exported frames")
+    import_frames.add_argument("frames", type=Path, help="folder written by `displex export`")
+    import_frames.add_argument("--out", type=Path, required=True)
+    import_frames.set_defaults(handler=_import_frames)
+
     bench = commands.add_parser("bench", help="benchmarks written as JSON (medians of several runs)")
     bench.add_argument("target", help="what to benchmark: sim, ps, train, invrender")
     bench.add_argument("--json", type=Path, default=None, help="write the results here")
@@ -72,6 +109,53 @@ def build_parser() -> argparse.ArgumentParser:
     bench.set_defaults(handler=_bench)
 
     return parser
+
+
+def _evaluate(args) -> None:
+    from train.evaluate_command import EvaluateConfig, run_evaluate
+
+    config = EvaluateConfig(tuple(args.scenes), args.patterns, args.method, args.noise, args.exposure, args.rig, args.seed, args.json, args.out)
+    document = run_evaluate(config)
+    for row in document["scenes"]:
+        print(f"{row['name']:<32} MAE {row['mae']:6.2f} deg  median {row['median']:6.2f}  invalid {row['invalid_fraction']:.3f}")
+    print(f"mean MAE {document['mean_mae']:.2f} deg")
+
+
+def _train(args) -> None:
+    from train.config_io import load_config
+    from train.learn import TrainConfig, train_patterns
+
+    overrides = {
+        "num_patterns": args.num_patterns,
+        "init": args.init,
+        "scenes": None if args.scenes is None else tuple(str(p) for p in args.scenes),
+        "steps": args.steps,
+        "seed": args.seed,
+        "rerender_weight": args.rerender_weight,
+    }
+    config = load_config(TrainConfig, args.config, overrides)
+    result = train_patterns(config, args.out, logdir=args.logdir)
+    last = f", validation MAE {result.val_history[-1][1]:.2f} deg" if result.val_history else ""
+    print(f"wrote learned patterns to {args.out}{last}")
+
+
+def _export(args) -> None:
+    from capture_sim.rig import load_rig
+    from patterns.export import export_frames
+    from patterns.io import load_patterns
+
+    values, _ = load_patterns(args.patterns)
+    manifest = export_frames(values, load_rig(args.rig), args.out, bit_depth=args.bit_depth, include_olat=args.olat)
+    print(f"wrote {len(manifest['frames'])} frames and manifest.json to {args.out}")
+
+
+def _import_frames(args) -> None:
+    from patterns.export import import_frames
+    from patterns.io import save_patterns
+
+    values, manifest = import_frames(args.frames)
+    save_patterns(args.out, values, {"family": "imported", "made_by": "displex import-frames", "source": str(args.frames), "rig": manifest.get("rig")})
+    print(f"recovered {len(values)} patterns from {args.frames} into {args.out}")
 
 
 def _bench(args) -> None:
@@ -88,8 +172,8 @@ def _scenes_synth(args) -> None:
     from capture_sim.rig import load_rig
     from capture_sim.synth import write_scene_set
 
-    index = write_scene_set(args.out, rig=load_rig(args.rig), height=args.size[0], width=args.size[1], seed=args.seed, cast_shadows=args.cast_shadows)
-    print(f"wrote {sum(len(v) for v in index.values()) if isinstance(index, dict) else index} scenes to {args.out}")
+    index_path = write_scene_set(args.out, rig=load_rig(args.rig), height=args.size[0], width=args.size[1], seed=args.seed, cast_shadows=args.cast_shadows)
+    print(f"wrote the scene set to {args.out} (index: {index_path})")
 
 
 def _simulate(args) -> None:

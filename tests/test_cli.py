@@ -1,0 +1,95 @@
+"""The command line end to end on tiny scenes: outputs, exit codes, one-line errors."""
+import json
+
+import numpy as np
+import pytest
+
+from capture_sim.rig import load_rig
+from capture_sim.scene import save_scene
+from capture_sim.synth import synthesize_scene
+from patterns.io import save_patterns
+from train.cli import run
+
+
+@pytest.fixture(scope="module")
+def scene_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("scenes") / "blob.npz"
+    save_scene(synthesize_scene("blob", "svbrdf", load_rig(), height=24, width=29, seed=3), path)
+    return path
+
+
+def _pattern_file(tmp_path, kind, rig):
+    shape = (rig.rows, rig.cols, 3)
+    values = {
+        "one_hot": np.eye(rig.num_lights, dtype=np.float32)[[0, 17, 80, 143]][..., None].repeat(3, -1).reshape(4, *shape),
+        "random": np.random.default_rng(2).uniform(0, 1, (3, *shape)).astype(np.float32),
+        "white": np.ones((1, *shape), dtype=np.float32),
+    }[kind]
+    path = tmp_path / f"{kind}.npy"
+    np.save(path, values)
+    return path, values
+
+
+@pytest.mark.parametrize("kind,exposure", [("one_hot", "auto"), ("random", "auto"), ("white", "0.05")])
+def test_simulate_matches_numpy_from_meta(tmp_path, scene_file, kind, exposure):
+    rig = load_rig()
+    pattern_path, values = _pattern_file(tmp_path, kind, rig)
+    out = tmp_path / "sim"
+    assert run(["simulate", "--scene", str(scene_file), "--patterns", str(pattern_path), "--out", str(out), "--noise", "off", "--exposure", exposure]) == 0
+    meta = json.loads((out / "meta.json").read_text())
+    captures = np.load(out / "captures.npy")
+    olat = np.load(scene_file)["olat"].astype(np.float64)
+    backlight = np.asarray(meta["backlight"]).reshape(1, -1, 1)
+    emitted = meta["scale"] * (values.reshape(len(values), -1, 3).astype(np.float64) + backlight) ** meta["gamma"]
+    expected = np.clip(meta["exposure"] * np.einsum("mkc,khwc->mhwc", emitted, olat), 0.0, 1.0)
+    assert meta["bit_depth"] is None
+    np.testing.assert_allclose(captures, expected, rtol=1e-5, atol=1e-7)
+    if kind == "white":
+        assert (captures == 1.0).any(), "clipping must be visible"
+    assert (out / "contact_sheet.png").is_file() and len(list(out.glob("capture_*.png"))) == len(values)
+
+
+def test_bad_inputs_give_one_line_and_status_2(tmp_path, scene_file, capsys):
+    rig = load_rig()
+    good, _ = _pattern_file(tmp_path, "random", rig)
+    outside = tmp_path / "outside.npy"
+    np.save(outside, np.full((2, rig.rows, rig.cols, 3), 1.5, dtype=np.float32))
+    wrong_grid = tmp_path / "grid.npy"
+    np.save(wrong_grid, np.full((2, 4, 8, 3), 0.5, dtype=np.float32))
+    nan_scene = tmp_path / "nan.npz"
+    with np.load(scene_file) as data:
+        arrays = dict(data)
+    arrays["olat"] = arrays["olat"].copy()
+    arrays["olat"][0, 0, 0, 0] = np.nan
+    np.savez(nan_scene, **arrays)
+    cases = [
+        ["simulate", "--scene", str(tmp_path / "missing.npz"), "--patterns", str(good), "--out", str(tmp_path / "a")],
+        ["simulate", "--scene", str(nan_scene), "--patterns", str(good), "--out", str(tmp_path / "b")],
+        ["simulate", "--scene", str(scene_file), "--patterns", str(outside), "--out", str(tmp_path / "c")],
+        ["simulate", "--scene", str(scene_file), "--patterns", str(wrong_grid), "--out", str(tmp_path / "d")],
+        ["simulate", "--scene", str(scene_file), "--patterns", str(good), "--out", str(tmp_path / "e"), "--exposure", "-3"],
+        ["evaluate", "--scenes", str(scene_file), "--patterns", str(outside)],
+        ["export", "--patterns", str(wrong_grid), "--out", str(tmp_path / "f")],
+        ["train", "--init", "no_such_family", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "g.npz")],
+    ]
+    for argv in cases:
+        capsys.readouterr()
+        assert run(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("displex: error:") and "\n" not in err, (argv, err)
+    for name in "abcdef":
+        assert not (tmp_path / name).exists() or not any((tmp_path / name).iterdir()), f"half-written output in {name}"
+
+
+def test_patterns_make_and_export_round_trip(tmp_path):
+    patterns = tmp_path / "p.npz"
+    assert run(["patterns", "make", "--family", "tri_complementary", "--M", "2", "--out", str(patterns)]) == 0
+    small_rig = tmp_path / "small.toml"
+    text = (load_rig.__globals__["RIG_DIR"] / "dir-odyssey-ark.toml").read_text().replace("panel_pixels = [2160, 3840]", "panel_pixels = [90, 160]")
+    small_rig.write_text(text)
+    frames = tmp_path / "frames"
+    assert run(["export", "--patterns", str(patterns), "--rig", str(small_rig), "--out", str(frames)]) == 0
+    recovered = tmp_path / "back.npz"
+    assert run(["import-frames", str(frames), "--out", str(recovered)]) == 0
+    original, back = np.load(patterns)["patterns"], np.load(recovered)["patterns"]
+    assert np.abs(original - back).max() <= 1 / 255

@@ -1,0 +1,48 @@
+"""Simulated capture of a prepared scene, shared by learning, search and evaluation."""
+from __future__ import annotations
+
+import torch
+
+from capture_sim.display import display_emission
+from capture_sim.simulator import Capture, auto_exposure, noise_free_radiance, simulate
+from train.scene_pixels import ScenePixels
+
+
+def capture_scene(
+    pixels: ScenePixels,
+    patterns: torch.Tensor,
+    noise_scale: float = 1.0,
+    exposure: float | str = "auto",
+    generator: torch.Generator | None = None,
+    columns: torch.Tensor | None = None,
+) -> Capture:
+    """Simulate the captures of a scene's pixels under a pattern set.
+
+    Args:
+        pixels: the prepared scene (masked pixels).
+        patterns: (M, R, C, 3) set values in [0, 1]; gradients flow to them.
+        noise_scale: multiplies both variance terms of the rig's noise model; 0 gives an ideal
+            sensor (no noise and no quantisation; clipping stays).
+        exposure: "auto" (over all the scene's masked pixels, no gradient) or a fixed number.
+        generator: noise generator.
+        columns: optional (P,) indices of a pixel subset to simulate (exposure still uses all).
+
+    Returns:
+        Capture with (M, N or P, 3) captures, (M, K, 3) effective emission and the exposure.
+    """
+    rig = pixels.rig
+    if exposure == "auto":
+        with torch.no_grad():
+            emitted = display_emission(patterns, rig.backlight_flat(patterns.dtype), rig.gamma, rig.scale)
+            exposure = auto_exposure(noise_free_radiance(emitted, pixels.transport))
+    transport = pixels.transport if columns is None else pixels.transport.subset(columns)
+    noisy = noise_scale > 0
+    return simulate(
+        patterns,
+        transport,
+        rig,
+        exposure=float(exposure),
+        noise=rig.noise.scaled(noise_scale) if noisy else None,
+        bit_depth=rig.bit_depth if noisy else None,
+        generator=generator,
+    )

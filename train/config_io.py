@@ -1,0 +1,48 @@
+"""Frozen-dataclass configs from TOML: unknown keys are errors, values are type-checked lightly."""
+from __future__ import annotations
+
+import dataclasses
+import typing
+from pathlib import Path
+
+from capture_sim.errors import InputError
+from capture_sim.toml_io import load_toml
+
+
+def config_from_dict(cls, values: dict, source: str = "config"):
+    """Build the frozen dataclass ``cls`` from ``values``; unknown keys raise ``InputError``."""
+    fields = {field.name: field for field in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - set(fields))
+    if unknown:
+        raise InputError(f"{source}: unknown key(s) {', '.join(unknown)}; known: {', '.join(fields)}")
+    hints = typing.get_type_hints(cls)
+    converted = {}
+    for key, value in values.items():
+        hint = hints[key]
+        if hint in (tuple[int, int], tuple[float, ...], tuple[str, ...], tuple[int, ...]) or typing.get_origin(hint) is tuple:
+            value = tuple(value)
+        converted[key] = value
+    try:
+        return cls(**converted)
+    except (TypeError, ValueError) as err:
+        raise InputError(f"{source}: {err}") from None
+
+
+def load_config(cls, path: str | Path | None, overrides: dict | None = None):
+    """Defaults of ``cls``, updated by the TOML file at ``path`` (if any), then by non-None overrides."""
+    values = {} if path is None else dict(load_toml(path))
+    values.update({key: value for key, value in (overrides or {}).items() if value is not None})
+    return config_from_dict(cls, values, source=str(path or cls.__name__))
+
+
+def config_to_dict(config) -> dict:
+    """A JSON/TOML-friendly dict of a config dataclass (paths and tuples become str and lists)."""
+    out = {}
+    for field in dataclasses.fields(config):
+        value = getattr(config, field.name)
+        if isinstance(value, Path):
+            value = str(value)
+        elif isinstance(value, tuple):
+            value = [str(v) if isinstance(v, Path) else v for v in value]
+        out[field.name] = value
+    return out

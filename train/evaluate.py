@@ -1,0 +1,127 @@
+"""Evaluation of a pattern set on scenes: simulate, reconstruct, measure (DESIGN section 5).
+
+Also the `displex evaluate` command: JSON per scene, and with --out the normal maps, error maps
+and a one-page summary figure.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from capture_sim.errors import InputError
+from capture_sim.rig import DEFAULT_RIG, load_rig
+from capture_sim.simulator import auto_exposure, sensor
+from reconstruct.metrics import angular_error_deg, normal_metrics
+from reconstruct.photometric_stereo import PSConfig, PSResult, solve_ps
+from reconstruct.woodham import solve_woodham, solve_woodham_olat
+from train.capture import capture_scene
+from train.scene_pixels import ScenePixels
+
+METHODS = ("ps", "woodham")
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    """How a pattern set is evaluated."""
+
+    method: str = "ps"
+    """'ps' (analytic multiplexed photometric stereo) or 'woodham' (least squares; grey patterns or OLAT)."""
+    noise_scale: float = 1.0
+    """Multiplier of the rig's noise variances; 0 = noise-free, unquantised sensor."""
+    exposure: float | str = "auto"
+    """'auto' per scene (DESIGN section 3) or a fixed gain."""
+    seed: int = 0
+    """Noise seed; scene i uses seed * 1000 + i."""
+    ps: PSConfig = field(default_factory=PSConfig)
+    """Solver settings."""
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.noise_scale < 0:
+            raise InputError("noise scale must be >= 0")
+
+
+@dataclass(frozen=True, eq=False)
+class SceneEvaluation:
+    """Result for one scene: metrics dict, (N, ...) reconstruction of its masked pixels, exposure."""
+
+    metrics: dict
+    result: PSResult
+    exposure: float
+
+
+def olat_captures(pixels: ScenePixels, settings: EvalSettings, generator: torch.Generator):
+    """Captures of the full OLAT stack: (K, N, 3) and the diagonal effective emission (K, K, 3).
+
+    Each OLAT image is exposed as the operator would for the whole stack (auto: 99.9th percentile of
+    all of them at 0.9), with the backlight removed as in the definition of O (DESIGN section 2).
+    """
+    radiance = pixels.transport.matrix.permute(1, 2, 0)  # (K, N, 3)
+    if settings.exposure == "auto":
+        exposure = auto_exposure(radiance)
+    else:
+        exposure = float(settings.exposure)
+    rig = pixels.rig
+    noisy = settings.noise_scale > 0
+    captures = sensor(exposure * radiance, rig.noise.scaled(settings.noise_scale) if noisy else None, rig.bit_depth if noisy else None, generator)
+    eye = torch.eye(pixels.transport.num_lights, dtype=captures.dtype)
+    return captures, exposure * eye[:, :, None].expand(-1, -1, 3), exposure
+
+
+def evaluate_scene(pixels: ScenePixels, patterns, settings: EvalSettings, scene_index: int = 0) -> SceneEvaluation:
+    """Simulate, reconstruct and measure one scene.
+
+    Args:
+        pixels: prepared scene; needs true normals.
+        patterns: (M, R, C, 3) tensor of set values, or the string "olat" for the full OLAT stack.
+        settings: method, noise, exposure, seed, solver.
+        scene_index: position of the scene in its set (chooses its noise seed).
+
+    Returns:
+        SceneEvaluation with metrics {mae, median, under_5, ..., invalid_fraction, seconds, exposure}.
+    """
+    if pixels.normal is None:
+        raise InputError(f"scene {pixels.name} has no ground-truth normals to evaluate against")
+    generator = torch.Generator().manual_seed(settings.seed * 1000 + scene_index)
+    start = time.perf_counter()
+    with torch.no_grad():
+        lights, falloff = pixels.lights(), pixels.rig.falloff
+        if isinstance(patterns, str):
+            if patterns != "olat":
+                raise InputError(f"patterns must be a pattern array or 'olat', got {patterns!r}")
+            captures, emission, exposure = olat_captures(pixels, settings, generator)
+            if settings.method == "woodham":
+                result = solve_woodham_olat(captures, pixels.points, lights, falloff, exposure)
+            else:
+                result = solve_ps(captures, emission, pixels.points, lights, falloff, settings.ps)
+        else:
+            capture = capture_scene(pixels, patterns, settings.noise_scale, settings.exposure, generator)
+            captures, emission, exposure = capture.captures, capture.emission, capture.exposure
+            if settings.method == "woodham":
+                result = solve_woodham(captures, emission, pixels.points, lights, falloff)
+            else:
+                result = solve_ps(captures, emission, pixels.points, lights, falloff, settings.ps)
+    seconds = time.perf_counter() - start
+    everywhere = torch.ones(pixels.num_pixels, dtype=torch.bool)
+    metrics = {"name": pixels.name, **normal_metrics(result.normal, pixels.normal, everywhere)}
+    metrics["invalid_fraction"] = float((~result.valid).float().mean())
+    metrics["seconds"] = seconds
+    metrics["exposure"] = exposure
+    return SceneEvaluation(metrics, result, exposure)
+
+
+def mean_mae(evaluations: list[SceneEvaluation]) -> float:
+    """Mean over scenes of the per-scene MAE (degrees)."""
+    return float(np.mean([evaluation.metrics["mae"] for evaluation in evaluations]))
+
+
+def error_map(pixels: ScenePixels, result: PSResult) -> np.ndarray:
+    """(H, W) angular error in degrees, NaN outside the mask (for plotting)."""
+    errors = np.full(pixels.mask.shape, np.nan, dtype=np.float32)
+    errors[pixels.mask] = angular_error_deg(result.normal, pixels.normal).numpy()
+    return errors

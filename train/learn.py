@@ -1,0 +1,243 @@
+"""End-to-end pattern learning (`displex train`).
+
+Patterns are unconstrained logits mapped to [0, 1] by a sigmoid. Each step samples pixels from every
+training scene, simulates their captures (display model, noise by reparameterisation, clipping,
+quantisation; auto exposure per scene recomputed without gradient), reconstructs normals with the
+analytic photometric stereo, and descends the mean angular error with Adam under a cosine schedule.
+Every random draw of step s comes from a generator seeded by (seed, s), so a run resumed from a
+checkpoint continues exactly as an uninterrupted one.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from capture_sim.atomic import atomic_path, write_json
+from capture_sim.errors import InputError
+from capture_sim.rig import DEFAULT_RIG, load_rig
+from patterns.families import FAMILIES, make_patterns
+from patterns.io import check_patterns_match_rig, load_patterns, save_patterns
+from patterns.parameterization import logits_to_patterns, patterns_to_logits
+from reconstruct.photometric_stereo import PSConfig, solve_ps
+from train.capture import capture_scene
+from train.config_io import config_to_dict
+from train.evaluate import EvalSettings, evaluate_scene, mean_mae
+from train.scene_pixels import ScenePixels, scene_pixels
+from train.scene_sets import resolve_scenes
+
+LOSSES = ("angular", "cosine")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Settings of one pattern-learning run (TOML files in configs/train/)."""
+
+    num_patterns: int = 4
+    """M, the number of patterns to learn."""
+    init: str = "tri_random"
+    """Starting patterns: a family name (made with its default parameters) or a pattern file."""
+    steps: int = 300
+    """Adam steps."""
+    learning_rate: float = 0.05
+    """Initial Adam step size on the logits."""
+    final_lr_fraction: float = 0.05
+    """The cosine schedule decays the step size to this fraction of ``learning_rate``."""
+    pixels_per_scene: int = 2048
+    """Pixels sampled from every training scene at each step."""
+    noise_scale: float = 1.0
+    """Multiplier of the rig's noise variances during training (0 = noise-free)."""
+    loss: str = "angular"
+    """'angular' (mean angle in radians) or 'cosine' (mean 1 - cos)."""
+    scenes: tuple[str, ...] = ()
+    """Training scene files or folders; empty = the default synthetic training split."""
+    val_scenes: tuple[str, ...] = ()
+    """Validation scenes (logged only, never used to pick patterns); empty = the default test split."""
+    scene_size: tuple[int, int] = (128, 153)
+    """Image size of the default synthetic scenes."""
+    scene_seed: int = 0
+    """Seed of the default synthetic scenes."""
+    rig: str = DEFAULT_RIG
+    """Rig preset or TOML path."""
+    seed: int = 0
+    """Seed of initial random patterns, pixel sampling and noise."""
+    val_every: int = 50
+    """Validate (full held-out scenes) every this many steps and at the end; 0 = only at the end."""
+    checkpoint_every: int = 25
+    """Write a resumable checkpoint every this many steps."""
+    rerender_weight: float = 0.0
+    """Weight of the re-rendering loss (estimated normals and albedo rendered by the baseline
+    renderer under the patterns, against the simulated captures); 0 = normal loss only."""
+
+    def __post_init__(self):
+        if self.num_patterns < 1 or self.steps < 0 or self.pixels_per_scene < 1:
+            raise InputError("num_patterns and pixels_per_scene must be >= 1 and steps >= 0")
+        if self.loss not in LOSSES:
+            raise InputError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
+        if not self.learning_rate > 0 or not 0 < self.final_lr_fraction <= 1:
+            raise InputError("learning_rate must be > 0 and final_lr_fraction in (0, 1]")
+        if self.noise_scale < 0 or self.rerender_weight < 0:
+            raise InputError("noise_scale and rerender_weight must be >= 0")
+
+
+def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
+    """(M, R, C, 3) starting patterns from a family name or a pattern file."""
+    if config.init in FAMILIES:
+        return make_patterns(config.init, config.num_patterns, rows=rows, cols=cols, seed=config.seed).float()
+    path = Path(config.init)
+    if path.suffix not in (".npz", ".npy"):
+        raise InputError(f"--init must be a family ({', '.join(FAMILIES)}) or a pattern file, got {config.init!r}")
+    values, _ = load_patterns(path)
+    check_patterns_match_rig(values, rows, cols)
+    if values.shape[0] != config.num_patterns:
+        raise InputError(f"{path} holds {values.shape[0]} patterns but M = {config.num_patterns}")
+    return torch.as_tensor(values)
+
+
+def normal_loss(estimate: torch.Tensor, truth: torch.Tensor, kind: str) -> torch.Tensor:
+    """Mean angular (radians) or cosine (1 - cos) error between (N, 3) unit normals."""
+    cosine = (estimate * truth).sum(-1)
+    if kind == "cosine":
+        return (1.0 - cosine).mean()
+    # acos has an infinite slope at 1: clamp just inside so that exact pixels give finite gradients.
+    return torch.acos(cosine.clamp(-1.0 + 1e-6, 1.0 - 1e-6)).mean()
+
+
+def step_generator(seed: int, step: int) -> torch.Generator:
+    """The random generator of one training step (independent of where a run was resumed)."""
+    return torch.Generator().manual_seed(seed * 1_000_003 + step)
+
+
+def training_loss(logits: torch.Tensor, scenes: list[ScenePixels], config: TrainConfig, step: int, ps_config: PSConfig) -> torch.Tensor:
+    """Loss of one step: sampled pixels of every scene, simulated, reconstructed, compared."""
+    generator = step_generator(config.seed, step)
+    patterns = logits_to_patterns(logits)
+    losses = []
+    for pixels in scenes:
+        count = min(config.pixels_per_scene, pixels.num_pixels)
+        columns = torch.randperm(pixels.num_pixels, generator=generator)[:count]
+        capture = capture_scene(pixels, patterns, config.noise_scale, "auto", generator, columns)
+        result = solve_ps(capture.captures, capture.emission, pixels.points[columns], pixels.lights(), pixels.rig.falloff, ps_config)
+        loss = normal_loss(result.normal, pixels.normal[columns], config.loss)
+        if config.rerender_weight > 0:
+            from train.rerender import rerender_loss
+
+            loss = loss + config.rerender_weight * rerender_loss(result, capture, pixels, columns)
+        losses.append(loss)
+    return torch.stack(losses).mean()
+
+
+def cosine_schedule(config: TrainConfig):
+    """Learning-rate multiplier per step: cosine from 1 down to ``final_lr_fraction``."""
+    floor = config.final_lr_fraction
+
+    def factor(step: int) -> float:
+        progress = min(1.0, step / max(1, config.steps))
+        return floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+    return factor
+
+
+@dataclass(frozen=True, eq=False)
+class TrainResult:
+    """Learned (M, R, C, 3) patterns, the validation MAE history [(step, degrees)], the final loss."""
+
+    patterns: np.ndarray
+    val_history: list
+    final_loss: float
+
+
+def checkpoint_path(out: Path) -> Path:
+    return out.with_name(out.stem + ".ckpt.pt")
+
+
+def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, progress: bool = True) -> TrainResult:
+    """Learn patterns, write them to ``out`` (.npz) with the resolved config beside them.
+
+    Resumes from ``<out stem>.ckpt.pt`` when it exists and was written with the same config.
+    """
+    out = Path(out)
+    rig = load_rig(config.rig)
+    train_scenes = [scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed)]
+    val_scenes = [scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.val_scenes, "test", rig, config.scene_size, config.scene_seed)]
+    logits = patterns_to_logits(initial_patterns(config, rig.rows, rig.cols)).detach().requires_grad_()
+    optimiser = torch.optim.Adam([logits], lr=config.learning_rate)
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimiser, cosine_schedule(config))
+    resolved = config_to_dict(config)
+    start_step, val_history = 0, []
+    checkpoint = checkpoint_path(out)
+    if checkpoint.exists():
+        state = torch.load(checkpoint, weights_only=False)
+        if state["config"] != resolved:
+            raise InputError(f"checkpoint {checkpoint} was written with another config; delete it to start afresh")
+        with torch.no_grad():
+            logits.copy_(state["logits"])
+        optimiser.load_state_dict(state["optimiser"])
+        scheduler.load_state_dict(state["scheduler"])
+        start_step, val_history = state["step"], state["val_history"]
+    writer = _summary_writer(logdir)
+    ps_config = PSConfig()
+    eval_settings = EvalSettings(noise_scale=config.noise_scale, seed=config.seed + 7919)
+    loss_value = float("nan")
+    bar = tqdm(range(start_step, config.steps), initial=start_step, total=config.steps, desc=f"learning M={config.num_patterns}", disable=not progress, unit="step")
+    for step in bar:
+        optimiser.zero_grad()
+        loss = training_loss(logits, train_scenes, config, step, ps_config)
+        loss.backward()
+        optimiser.step()
+        scheduler.step()
+        loss_value = float(loss)
+        done = step + 1
+        if writer is not None:
+            writer.add_scalar("train/loss", loss_value, done)
+            writer.add_scalar("train/learning_rate", scheduler.get_last_lr()[0], done)
+        if (config.val_every and done % config.val_every == 0) or done == config.steps:
+            val_mae = _validate(logits, val_scenes, eval_settings, writer, done)
+            val_history.append((done, val_mae))
+            bar.set_postfix(loss=f"{loss_value:.4f}", val_mae=f"{val_mae:.2f}")
+        if done % config.checkpoint_every == 0 or done == config.steps:
+            state = {"config": resolved, "logits": logits.detach().clone(), "optimiser": optimiser.state_dict(), "scheduler": scheduler.state_dict(), "step": done, "val_history": val_history}
+            with atomic_path(checkpoint, suffix=".pt") as tmp:
+                torch.save(state, tmp)
+    if writer is not None:
+        writer.close()
+    learned = logits_to_patterns(logits.detach()).numpy().astype(np.float32)
+    meta = {
+        "family": "learned",
+        "init": config.init,
+        "made_by": "displex train",
+        "rig": rig.name,
+        "config": resolved,
+        "val_mae_history": val_history,
+        "final_train_loss": loss_value,
+    }
+    save_patterns(out, learned, meta)
+    write_json(out.with_name(out.stem + ".config.json"), resolved)
+    return TrainResult(learned, val_history, loss_value)
+
+
+def _summary_writer(logdir: Path | None):
+    if logdir is None:
+        return None
+    from torch.utils.tensorboard import SummaryWriter
+
+    return SummaryWriter(str(logdir))
+
+
+def _validate(logits: torch.Tensor, scenes: list[ScenePixels], settings: EvalSettings, writer, step: int) -> float:
+    patterns = logits_to_patterns(logits.detach())
+    evaluations = [evaluate_scene(pixels, patterns, settings, index) for index, pixels in enumerate(scenes)]
+    value = mean_mae(evaluations)
+    if writer is not None:
+        writer.add_scalar("val/mae_deg", value, step)
+        # Patterns as an image strip: (3, R, M * C).
+        strip = torch.cat(list(patterns), dim=1).permute(2, 0, 1)
+        writer.add_image("patterns", strip, step)
+        first = scenes[0]
+        normal_image = first.transport.to_image(evaluations[0].result.normal[None], fill=0.0)[0]
+        writer.add_image("val/normal_estimate", (0.5 * (normal_image + 1)).clamp(0, 1).permute(2, 0, 1), step)
+    return value

@@ -1,0 +1,28 @@
+"""Where commands get their scenes: files and folders given by the user, or the default synthetic set."""
+from __future__ import annotations
+
+from functools import lru_cache
+
+from capture_sim.rig import Rig
+from capture_sim.scene import Scene, load_scene, scene_paths
+from capture_sim.synth import default_scene_set
+
+DEFAULT_SIZE = (128, 153)
+
+
+@lru_cache(maxsize=4)
+def _default_set(rig: Rig, height: int, width: int, seed: int) -> dict:
+    # Rigs hash by identity, so one loaded rig reuses its scenes across commands of one process.
+    return default_scene_set(rig, height=height, width=width, seed=seed)
+
+
+def default_split(split: str, rig: Rig, size: tuple[int, int] = DEFAULT_SIZE, seed: int = 0) -> list[Scene]:
+    """The ``"train"`` or ``"test"`` split of the default synthetic set (made once per process)."""
+    return list(_default_set(rig, size[0], size[1], seed)[split])
+
+
+def resolve_scenes(paths, split: str, rig: Rig, size: tuple[int, int] = DEFAULT_SIZE, seed: int = 0) -> list[Scene]:
+    """Scenes from files/folders in ``paths``, or the default set's ``split`` when ``paths`` is empty."""
+    if paths:
+        return [load_scene(path) for path in scene_paths(paths)]
+    return default_split(split, rig, size, seed)
