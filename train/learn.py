@@ -3,7 +3,8 @@
 Patterns are unconstrained logits mapped to [0, 1] by a sigmoid. Each step samples pixels from every
 training scene, simulates their captures (display model, noise by reparameterisation, clipping,
 quantisation; auto exposure per scene recomputed without gradient), reconstructs normals with the
-analytic photometric stereo, and descends the mean angular error with Adam under a cosine schedule.
+analytic photometric stereo (the fixed-iteration ``solve_ps_unrolled``; validation uses the full
+solver), and descends the mean angular error with Adam under a cosine schedule.
 Every random draw of step s comes from a generator seeded by (seed, s), so a run resumed from a
 checkpoint continues exactly as an uninterrupted one.
 """
@@ -23,11 +24,12 @@ from capture_sim.rig import DEFAULT_RIG, load_rig
 from patterns.families import FAMILIES, make_patterns
 from patterns.io import check_patterns_match_rig, load_patterns, save_patterns
 from patterns.parameterization import logits_to_patterns, patterns_to_logits
-from reconstruct.photometric_stereo import PSConfig, solve_ps
+from reconstruct.unrolled_ps import UnrolledPSConfig, solve_ps_unrolled
 from train.capture import capture_scene
 from train.config_io import config_to_dict
 from train.evaluate import EvalSettings, evaluate_scene, mean_mae
 from train.scene_pixels import ScenePixels, scene_pixels
+from train.rerender import rerender_loss
 from train.scene_sets import resolve_scenes
 
 LOSSES = ("angular", "cosine")
@@ -112,7 +114,7 @@ def step_generator(seed: int, step: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed * 1_000_003 + step)
 
 
-def training_loss(logits: torch.Tensor, scenes: list[ScenePixels], config: TrainConfig, step: int, ps_config: PSConfig) -> torch.Tensor:
+def training_loss(logits: torch.Tensor, scenes: list[ScenePixels], config: TrainConfig, step: int, ps_config: UnrolledPSConfig) -> torch.Tensor:
     """Loss of one step: sampled pixels of every scene, simulated, reconstructed, compared."""
     generator = step_generator(config.seed, step)
     patterns = logits_to_patterns(logits)
@@ -121,12 +123,10 @@ def training_loss(logits: torch.Tensor, scenes: list[ScenePixels], config: Train
         count = min(config.pixels_per_scene, pixels.num_pixels)
         columns = torch.randperm(pixels.num_pixels, generator=generator)[:count]
         capture = capture_scene(pixels, patterns, config.noise_scale, "auto", generator, columns)
-        result = solve_ps(capture.captures, capture.emission, pixels.points[columns], pixels.lights(), pixels.rig.falloff, ps_config)
-        loss = normal_loss(result.normal, pixels.normal[columns], config.loss)
+        normal, albedo = solve_ps_unrolled(capture.captures, capture.emission, pixels.points[columns], pixels.lights(), pixels.rig.falloff, ps_config)
+        loss = normal_loss(normal, pixels.normal[columns], config.loss)
         if config.rerender_weight > 0:
-            from train.rerender import rerender_loss
-
-            loss = loss + config.rerender_weight * rerender_loss(result, capture, pixels, columns)
+            loss = loss + config.rerender_weight * rerender_loss(normal, albedo, capture, pixels, columns)
         losses.append(loss)
     return torch.stack(losses).mean()
 
@@ -180,7 +180,7 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
         scheduler.load_state_dict(state["scheduler"])
         start_step, val_history = state["step"], state["val_history"]
     writer = _summary_writer(logdir)
-    ps_config = PSConfig()
+    ps_config = UnrolledPSConfig()
     eval_settings = EvalSettings(noise_scale=config.noise_scale, seed=config.seed + 7919)
     loss_value = float("nan")
     bar = tqdm(range(start_step, config.steps), initial=start_step, total=config.steps, desc=f"learning M={config.num_patterns}", disable=not progress, unit="step")
@@ -190,7 +190,7 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
         loss.backward()
         optimiser.step()
         scheduler.step()
-        loss_value = float(loss)
+        loss_value = float(loss.detach())
         done = step + 1
         if writer is not None:
             writer.add_scalar("train/loss", loss_value, done)

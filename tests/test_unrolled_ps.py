@@ -1,0 +1,63 @@
+import numpy as np
+import torch
+
+from capture_sim.display import display_emission
+from capture_sim.rig import load_rig
+from capture_sim.synth import lambertian_sphere
+from reconstruct.metrics import angular_error_deg
+from reconstruct.unrolled_ps import UnrolledPSConfig, _inverse_apply, solve_ps_unrolled
+from train.scene_pixels import scene_pixels
+
+
+def _sphere_captures(patterns, dtype=torch.float64):
+    rig = load_rig()
+    pixels = scene_pixels(lambertian_sphere(rig, height=32, width=38), rig, require_normals=True)
+    emission = display_emission(torch.as_tensor(patterns, dtype=dtype), rig.backlight_flat(dtype), rig.gamma)
+    transport = pixels.transport.matrix.to(dtype)
+    captures = torch.matmul(emission.permute(2, 0, 1), transport).permute(1, 2, 0)
+    scale = 0.9 / float(captures.max())
+    return pixels, captures * scale, emission * scale
+
+
+def test_adjugate_solve_matches_linalg():
+    generator = torch.Generator().manual_seed(0)
+    factor = torch.randn(50, 3, 3, dtype=torch.float64, generator=generator)
+    system = factor @ factor.transpose(1, 2) + 0.1 * torch.eye(3, dtype=torch.float64)
+    rhs = torch.randn(50, 3, dtype=torch.float64, generator=generator)
+    torch.testing.assert_close(_inverse_apply(system, rhs), torch.linalg.solve(system, rhs))
+
+
+def test_noise_free_sphere_recovers_normals():
+    patterns = np.load("patterns/data/ddps/initial_mono_gradient.npy")
+    pixels, captures, emission = _sphere_captures(patterns)
+    normal, albedo = solve_ps_unrolled(captures, emission, pixels.points, pixels.lights(), pixels.rig.falloff, UnrolledPSConfig(alternations=20, shadow_iterations=6))
+    assert float(angular_error_deg(normal, pixels.normal.double()).mean()) < 0.5
+    assert torch.isfinite(albedo).all() and (albedo >= 0).all()
+
+
+def test_gradcheck_unrolled():
+    rig = load_rig()
+    generator = torch.Generator().manual_seed(1)
+    points = torch.tensor([[0.01, 0.02, 0.5], [-0.02, 0.0, 0.48], [0.0, -0.03, 0.52]], dtype=torch.float64)
+    lights = rig.lights(torch.float64)[::24]  # 6 lights
+    emission = (0.2 + torch.rand(3, lights.shape[0], 3, dtype=torch.float64, generator=generator)).requires_grad_()
+    captures = (0.1 + 0.5 * torch.rand(3, 3, 3, dtype=torch.float64, generator=generator)).requires_grad_()
+
+    def normals(captures_in, emission_in):
+        normal, albedo = solve_ps_unrolled(captures_in, emission_in, points, lights, rig.falloff, UnrolledPSConfig(shadow_iterations=1, alternations=0, grad_alternations=4))
+        return normal, albedo
+
+    assert torch.autograd.gradcheck(normals, (captures, emission), eps=1e-6, atol=1e-5)
+
+
+def test_degenerate_inputs_stay_finite():
+    rig = load_rig()
+    lights = rig.lights()
+    points = torch.tensor([[0.0, 0.0, 0.5], [0.1, 0.1, 0.5], [0.0, 0.0, -0.1]])
+    for emission in (torch.zeros(1, 144, 3), torch.ones(2, 144, 3), torch.rand(3, 144, 3)):
+        emission = emission.requires_grad_()
+        captures = torch.zeros(emission.shape[0], 3, 3, requires_grad=True)
+        normal, albedo = solve_ps_unrolled(captures, emission, points, lights, rig.falloff)
+        (normal.sum() + albedo.sum()).backward()
+        assert torch.isfinite(normal).all() and torch.isfinite(albedo).all()
+        assert torch.isfinite(emission.grad).all() and torch.isfinite(captures.grad).all()
