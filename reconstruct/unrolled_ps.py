@@ -41,18 +41,17 @@ class UnrolledPSConfig:
 
 
 def _inverse_apply(system: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
-    """Solve (N, 3, 3) symmetric positive systems for (N, 3) right-hand sides by the adjugate."""
-    a, b, c = system[:, 0, 0], system[:, 0, 1], system[:, 0, 2]
-    d, e, f = system[:, 1, 1], system[:, 1, 2], system[:, 2, 2]
-    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
-    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * c00 + b * c01 + c * c02
-    x = c00 * rhs[:, 0] + c01 * rhs[:, 1] + c02 * rhs[:, 2]
-    y = c01 * rhs[:, 0] + c11 * rhs[:, 1] + c12 * rhs[:, 2]
-    z = c02 * rhs[:, 0] + c12 * rhs[:, 1] + c22 * rhs[:, 2]
-    # The result is normalised by the caller, so the determinant only needs a safe sign and size.
+    """Solve (N, 3, 3) symmetric systems for (N, 3) right-hand sides by the adjugate.
+
+    For symmetric A with rows r0, r1, r2 the adjugate's columns are r1 x r2, r2 x r0, r0 x r1.
+    """
+    r0, r1, r2 = system.unbind(1)
+    c0, c1, c2 = torch.linalg.cross(r1, r2), torch.linalg.cross(r2, r0), torch.linalg.cross(r0, r1)
+    det = (r0 * c0).sum(-1, keepdim=True)
+    solution = c0 * rhs[:, :1] + c1 * rhs[:, 1:2] + c2 * rhs[:, 2:]
+    # Callers normalise the result, so the determinant only needs a safe sign and size.
     safe = torch.where(det.abs() > 1e-30, det, torch.full_like(det, 1e-30))
-    return torch.stack([x, y, z], dim=-1) / safe[:, None]
+    return solution / safe
 
 
 def _lighting_vectors(weights: torch.Tensor, table: torch.Tensor, points: torch.Tensor, num_patterns: int) -> torch.Tensor:
@@ -67,7 +66,7 @@ def _alternate(normal, albedo, moments, rhs_moments, damping, steps):
     # Relative floor, plus an absolute one well above the dtype's underflow for all-dark inputs.
     tiny = 1e-12 * moments.detach().abs().amax() + torch.finfo(moments.dtype).tiny ** 0.5
     for _ in range(steps):
-        projected = (moments @ normal[:, None, :, None]).squeeze(-1)  # B_c n: (N, 3, 3)
+        projected = (moments * normal[:, None, None, :]).sum(-1)  # B_c n: (N, 3, 3); tiny batched matmuls are slower
         quadratic = (projected * normal[:, None, :]).sum(-1)
         albedo = ((rhs_moments * normal[:, None, :]).sum(-1) / (quadratic + tiny)).clamp_min(0.0)
         system = ((albedo * albedo)[..., None, None] * moments).sum(1)

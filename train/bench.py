@@ -25,6 +25,7 @@ from capture_sim.simulator import LightTransport, light_transport, simulate
 from patterns.families import make_patterns
 from patterns.parameterization import logits_to_patterns, patterns_to_logits
 from reconstruct.photometric_stereo import solve_ps
+from reconstruct.unrolled_ps import solve_ps_unrolled
 from train.capture import capture_scene
 from train.learn import TrainConfig, normal_loss
 from train.scene_pixels import ScenePixels
@@ -186,7 +187,7 @@ def bench_ps(num_patterns: int = 4, repeats: int = 5, seed: int = 0) -> dict:
 
 
 def bench_train(num_patterns: int = 4, sampled_pixels: int = 100_000, repeats: int = 5, seed: int = 0) -> dict:
-    """One learning step (simulate + reconstruct + backward) for M patterns over sampled pixels."""
+    """One learning step (simulate + unrolled reconstruction + backward), M patterns, sampled pixels."""
     pixels = full_frame_pixels()
     columns = torch.randperm(pixels.num_pixels, generator=torch.Generator().manual_seed(seed))[:sampled_pixels]
     logits = patterns_to_logits(make_patterns("tri_random", num_patterns, seed=seed)).requires_grad_()
@@ -195,8 +196,8 @@ def bench_train(num_patterns: int = 4, sampled_pixels: int = 100_000, repeats: i
     def step():
         logits.grad = None
         capture = capture_scene(pixels, logits_to_patterns(logits), 1.0, "auto", torch.Generator().manual_seed(seed), columns)
-        result = solve_ps(capture.captures, capture.emission, pixels.points[columns], pixels.lights(), pixels.rig.falloff)
-        normal_loss(result.normal, pixels.normal[columns], config.loss).backward()
+        normal, _ = solve_ps_unrolled(capture.captures, capture.emission, pixels.points[columns], pixels.lights(), pixels.rig.falloff)
+        normal_loss(normal, pixels.normal[columns], config.loss).backward()
 
     step()
     reset_peak_rss()

@@ -102,6 +102,11 @@ def build_parser() -> argparse.ArgumentParser:
     import_frames.add_argument("--out", type=Path, required=True)
     import_frames.set_defaults(handler=_import_frames)
 
+    demo = commands.add_parser("demo", help="the main job: scenes, learning, comparison, report and charts")
+    demo.add_argument("--out", type=Path, default=Path("runs/demo"))
+    demo.add_argument("--steps", type=int, default=None, help="learning steps per pattern set")
+    demo.set_defaults(handler=_demo)
+
     bench = commands.add_parser("bench", help="benchmarks written as JSON (medians of several runs)")
     bench.add_argument("target", help="what to benchmark: sim, ps, train, invrender")
     bench.add_argument("--json", type=Path, default=None, help="write the results here")
@@ -156,6 +161,14 @@ def _import_frames(args) -> None:
     values, manifest = import_frames(args.frames)
     save_patterns(args.out, values, {"family": "imported", "made_by": "displex import-frames", "source": str(args.frames), "rig": manifest.get("rig")})
     print(f"recovered {len(values)} patterns from {args.frames} into {args.out}")
+
+
+def _demo(args) -> None:
+    from train.demo import DemoConfig, run_demo
+
+    config = DemoConfig() if args.steps is None else DemoConfig(train_steps=args.steps)
+    run_demo(args.out, config)
+    print(f"wrote {args.out / 'report.md'}, results.json and charts")
 
 
 def _bench(args) -> None:

@@ -41,11 +41,13 @@ class TrainConfig:
 
     num_patterns: int = 4
     """M, the number of patterns to learn."""
-    init: str = "tri_random"
-    """Starting patterns: a family name (made with its default parameters) or a pattern file."""
+    init: str = "auto"
+    """Starting patterns: a family name (made with its default parameters), a pattern file, or
+    'auto': tri_gradient for M <= 2 (mono families are rank-deficient there), else mono_gradient
+    (the best heuristic families on the default scenes)."""
     steps: int = 300
     """Adam steps."""
-    learning_rate: float = 0.05
+    learning_rate: float = 0.1
     """Initial Adam step size on the logits."""
     final_lr_fraction: float = 0.05
     """The cosine schedule decays the step size to this fraction of ``learning_rate``."""
@@ -87,7 +89,10 @@ class TrainConfig:
 
 
 def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
-    """(M, R, C, 3) starting patterns from a family name or a pattern file."""
+    """(M, R, C, 3) starting patterns from a family name, 'auto' or a pattern file."""
+    if config.init == "auto":
+        family = "tri_gradient" if config.num_patterns <= 2 else "mono_gradient"
+        return make_patterns(family, config.num_patterns, rows=rows, cols=cols, seed=config.seed).float()
     if config.init in FAMILIES:
         return make_patterns(config.init, config.num_patterns, rows=rows, cols=cols, seed=config.seed).float()
     path = Path(config.init)
