@@ -1,45 +1,71 @@
-"""Accuracy metrics (DESIGN section 5): normal angular error and relighting PSNR / SSIM."""
+"""Accuracy metrics (DESIGN section 5): normal angular error and relighting PSNR / SSIM.
+
+Normal error: the angle between estimated and true normals, computed as atan2(|a x b|, a . b):
+finite everywhere and accurate for tiny angles, where the arccosine of a rounded cosine is not
+(in float32, acos(dot) cannot resolve angles below about 0.02 degrees); it equals the clamped
+arccosine of the normalised dot product otherwise.
+
+Relighting (linear images in [0, 1], peak value 1), inside a mask:
+- PSNR = 10 log10(1 / MSE) with the MSE over the masked pixels and the three channels of all
+  images (pooled), computed by ``kornia.metrics.psnr`` on the masked pixels. Identical images have
+  infinite PSNR; it is reported as PSNR_CAP_DB (100 dB) so results stay finite.
+- SSIM: ``kornia.metrics.ssim`` maps of the images with everything outside the mask set to zero
+  in both, averaged over the masked pixels and channels of all images.
+"""
 from __future__ import annotations
 
 import kornia
 import torch
 
-from capture_sim.errors import check_array
+from capture_sim.errors import InputError, check_array
 
 PSNR_CAP_DB = 100.0
-"""PSNR of identical images is infinite; it is reported as this cap so JSON stays finite."""
+"""PSNR of identical images is infinite; it is reported as this cap so results stay finite."""
 
 
 def angular_error_deg(estimate: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     """Angle between normals in degrees.
 
     Args:
-        estimate, truth: (..., 3) normals (normalised here; zero vectors give 90 degrees).
+        estimate: (..., 3) normals (normalised here).
+        truth: (..., 3) normals, same shape.
 
     Returns:
-        (...) angles in [0, 180] degrees, always finite.
+        (...) angles in [0, 180] degrees in the dtype of ``estimate``, always finite (a zero vector
+        gives 90 degrees). Differentiable with finite gradients.
+
+    Example:
+        >>> angular_error_deg(torch.tensor([[0.0, 0.0, -1.0]]), torch.tensor([[0.0, 1.0, -1.0]]))
+        tensor([45.])
     """
     check_array("estimate", estimate, ("...", 3))
     check_array("truth", truth, tuple(estimate.shape))
-    a = estimate.double() / estimate.double().norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    b = truth.double() / truth.double().norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    # atan2 of |a x b| and a.b is accurate for tiny angles, where acos of a rounded cosine is not.
-    return torch.rad2deg(torch.atan2(torch.linalg.cross(a, b).norm(dim=-1), (a * b).sum(-1))).to(estimate.dtype)
+    first, second = estimate.double(), truth.double()
+    # The tiny offset keeps the gradient finite where the vectors are parallel.
+    sine = torch.sqrt(torch.linalg.cross(first, second).square().sum(-1) + 1e-300)
+    cosine = (first * second).sum(-1)
+    degenerate = (first.abs().amax(-1) == 0) | (second.abs().amax(-1) == 0)
+    angle = torch.rad2deg(torch.atan2(sine, torch.where(degenerate, torch.ones_like(cosine), cosine)))
+    return torch.where(degenerate, torch.full_like(angle, 90.0), angle).to(estimate.dtype)
 
 
 def normal_metrics(estimate: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> dict:
     """Normal-error summary over a mask.
 
     Args:
-        estimate, truth: (..., 3) normals, camera frame.
+        estimate: (..., 3) estimated normals, camera frame.
+        truth: (..., 3) true normals.
         mask: (...) bool, pixels to count.
 
     Returns:
-        dict with mae and median (degrees) and under_5, under_10, under_20, under_30 (fractions of
-        the masked pixels in [0, 1]); NaN-free (an empty mask gives zeros and count 0).
+        dict: mae and median (degrees), under_5, under_10, under_20, under_30 (fractions of the
+        masked pixels with an error below that many degrees, in [0, 1]) and count (pixels); an
+        empty mask gives zeros and count 0.
     """
-    mask = torch.as_tensor(mask, dtype=torch.bool)
+    mask = torch.as_tensor(mask)
     check_array("mask", mask, tuple(estimate.shape[:-1]))
+    if mask.dtype != torch.bool:
+        raise InputError("mask must be a bool array")
     errors = angular_error_deg(estimate.detach(), truth.detach())[mask].double()
     if errors.numel() == 0:
         return {"mae": 0.0, "median": 0.0, "under_5": 0.0, "under_10": 0.0, "under_20": 0.0, "under_30": 0.0, "count": 0}
@@ -50,47 +76,57 @@ def normal_metrics(estimate: torch.Tensor, truth: torch.Tensor, mask: torch.Tens
     return summary
 
 
-def _to_kornia(images: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """(B, H, W, 3) channels-last images with the outside of the mask zeroed, as (B, 3, H, W)."""
-    return (images * mask[..., None]).permute(0, 3, 1, 2).float()
+def _check_images(prediction, truth, mask) -> torch.Tensor:
+    check_array("prediction", prediction, ("...", "H", "W", 3))
+    check_array("truth", truth, tuple(prediction.shape))
+    mask = torch.as_tensor(mask)
+    check_array("mask", mask, tuple(prediction.shape[-3:-1]))
+    if mask.dtype != torch.bool:
+        raise InputError("mask must be a bool array")
+    if not bool(mask.any()):
+        raise InputError("mask selects no pixels")
+    return mask
 
 
 def psnr(prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> float:
-    """PSNR in dB over the masked pixels of linear images in [0, 1] (peak 1).
+    """PSNR in dB over the masked pixels of linear images (peak value 1).
 
     Args:
-        prediction, truth: (B, H, W, 3) or (H, W, 3) images.
-        mask: (H, W) bool.
+        prediction: (..., H, W, 3) images in [0, 1].
+        truth: (..., H, W, 3) reference images.
+        mask: (H, W) bool, pixels to compare (must select at least one).
 
     Returns:
-        10 log10(1 / MSE) over masked pixels and channels, capped at ``PSNR_CAP_DB``.
+        10 log10(1 / MSE), MSE pooled over the masked pixels, channels and images; capped at
+        PSNR_CAP_DB.
     """
-    check_array("prediction", prediction, ("...", "H", "W", 3))
-    check_array("truth", truth, tuple(prediction.shape))
-    mask = torch.as_tensor(mask, dtype=torch.bool)
-    error = (prediction.double() - truth.double())[..., mask, :]
-    mse = float((error * error).mean()) if error.numel() else 0.0
-    if mse <= 10 ** (-PSNR_CAP_DB / 10):
-        return PSNR_CAP_DB
-    return float(-10.0 * torch.log10(torch.tensor(mse)))
+    mask = _check_images(prediction, truth, mask)
+    # PSNR only needs the masked values; kornia reduces them whatever their layout.
+    predicted, reference = prediction.detach().double()[..., mask, :], truth.detach().double()[..., mask, :]
+    value = float(kornia.metrics.psnr(predicted, reference, max_val=1.0))
+    return min(value, PSNR_CAP_DB)
 
 
 def ssim(prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, window_size: int = 11) -> float:
-    """Mean SSIM (kornia) over the masked pixels; outside the mask both images are zeroed first.
+    """Mean SSIM over the masked pixels of linear images (peak value 1).
 
     Args:
-        prediction, truth: (B, H, W, 3) or (H, W, 3) linear images in [0, 1].
-        mask: (H, W) bool.
-        window_size: odd Gaussian window size of the SSIM.
+        prediction: (..., H, W, 3) images in [0, 1].
+        truth: (..., H, W, 3) reference images.
+        mask: (H, W) bool, pixels to average over (must select at least one).
+        window_size: odd Gaussian window of the SSIM, shrunk to fit small images.
 
     Returns:
-        SSIM averaged over masked pixels and channels, in [-1, 1].
+        SSIM averaged over masked pixels, channels and images, in [-1, 1].
     """
-    check_array("prediction", prediction, ("...", "H", "W", 3))
-    check_array("truth", truth, tuple(prediction.shape))
-    mask = torch.as_tensor(mask, dtype=torch.bool)
-    batch_pred = prediction.reshape(-1, *prediction.shape[-3:])
-    batch_truth = truth.reshape(-1, *truth.shape[-3:])
-    window = min(window_size, 2 * (min(mask.shape) // 2) - 1)
-    ssim_map = kornia.metrics.ssim(_to_kornia(batch_pred, mask), _to_kornia(batch_truth, mask), window_size=max(window, 1), max_val=1.0)
-    return float(ssim_map.permute(0, 2, 3, 1)[:, mask].mean())
+    mask = _check_images(prediction, truth, mask)
+    if window_size < 1 or window_size % 2 == 0:
+        raise InputError(f"window_size must be a positive odd number, got {window_size}")
+    height, width = mask.shape
+    window = min(window_size, 2 * ((min(height, width) - 1) // 2) + 1)
+
+    def to_kornia(images):  # channels-last (..., H, W, 3) -> (B, 3, H, W), zero outside the mask
+        return (images.detach().double() * mask[..., None]).reshape(-1, height, width, 3).permute(0, 3, 1, 2)
+
+    similarity = kornia.metrics.ssim(to_kornia(prediction), to_kornia(truth), window_size=window, max_val=1.0)
+    return float(similarity.permute(0, 2, 3, 1)[:, mask].mean())

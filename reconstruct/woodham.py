@@ -1,143 +1,315 @@
-"""Woodham least-squares photometric stereo with calibrated near-field lights (DESIGN section 4).
+"""Woodham least-squares photometric stereo with calibrated near-field lights (the reference method).
 
-Per pixel and channel c, g_c = a_c n solves the linear least squares
-    I[m, c] = b[m, c] . g_c,    b[m, c] = sum_k E[m, k, c] f_k s_k l_k
-over the patterns m whose superpixels light the point (s_k = [l_k . n > 0]); the normal is the
-normalised sum of the three g_c, the albedo a_c = |g_c|. For an OLAT stack E is diagonal and b
-reduces to e f_k l_k, so the stack is processed light by light without building (K, K) emission.
-Attached shadows are re-estimated from the current normal a few times, starting from the lights
-that visibly lit the pixel. The reference method for OLAT stacks (M = K).
+Per pixel and colour channel c the Lambertian model is linear in g_c = a_c n:
+    I[m, c] = b[m, c] . g_c,     b[m, c] = sum_k E[m, k, c] f_k s_k l_k
+(DESIGN section 4; a absorbs the BRDF's 1 / pi). Each channel is solved on its own from the
+normal equations B_c g_c = r_c (B_c = sum_m q b b^T, r_c = sum_m q I b), the normal is the
+direction of sum_c g_c and the albedo the least-squares a_c for that normal.
+
+Two kinds of input:
+- an OLAT stack (M = K captures, emission diagonal: capture k lit by superpixel k alone): the
+  per-light terms enter directly, b[k, c] = e_kc f_k l_k, without forming any b vector
+  (``lighting.olat_moments``), so a full 144-light stack is processed block by block without being
+  copied; lights darker than ``shadow_threshold`` times the pixel's brightest OLAT value in that
+  channel are dropped as shadowed;
+- any M >= 3 patterns (typically grey), through the same effective lighting vectors as
+  ``photometric_stereo``.
+In both cases saturated captures are dropped and attached shadows (l_k . n <= 0) are removed by the
+same damped shadow search as the analytic method (``reconstruct.shadow_search``). The solver runs
+without gradients.
 """
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import torch
 
 from capture_sim.errors import InputError, check_array
-from reconstruct.photometric_stereo import FLAG_NAMES, PSResult
+from reconstruct.lighting import LightField, lighting_matrix, olat_moments
+from reconstruct.photometric_stereo import (
+    PatternEvaluator,
+    PSResult,
+    capture_flags,
+    check_image_inputs,
+    concatenate_results,
+    finalise,
+    image_pixels,
+    scatter_result,
+    working_config,
+)
+from reconstruct.pixel_solve import Moments, albedo_step, damped_solve, scaled_moments, unit
+from reconstruct.shadow_search import restarted_search
 
-CHUNK = 8192
-SHADOW_ITERATIONS = 4
-CONDITION_LIMIT = 1e4
-DARK_LEVEL = 1e-3
-SATURATION_LEVEL = 0.999
-
-
-def _solve_channels(system: torch.Tensor, rhs: torch.Tensor, damping: float = 1e-9):
-    """Damped closed-form solve of (N, 3, 3) systems for (N, 3 channels, 3) right-hand sides."""
-    scale = system.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(1e-30) / 3.0
-    eye = torch.eye(3, dtype=system.dtype)
-    damped = system + (damping * scale)[:, None, None] * eye
-    solution = torch.linalg.solve(damped, rhs.transpose(1, 2)).transpose(1, 2)  # (N, 3ch, 3)
-    eigen = torch.linalg.eigvalsh(damped)
-    condition = eigen[:, -1].clamp_min(1e-30) / eigen[:, 0].clamp_min(1e-30 * scale)
-    return solution, condition
-
-
-def _result(g: torch.Tensor, condition: torch.Tensor, captures: torch.Tensor, points: torch.Tensor) -> PSResult:
-    """Normals, albedo, validity and flags from per-channel solutions g (N, 3, 3)."""
-    summed = g.sum(1)
-    length = summed.norm(dim=-1)
-    normal = summed / length.clamp_min(1e-30)[:, None]
-    view = -points / points.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    brightest = captures.amax(dim=(0, 2))
-    flags = {name: torch.zeros(points.shape[0], dtype=torch.bool) for name in FLAG_NAMES}
-    flags["dark"] = brightest < DARK_LEVEL
-    flags["saturated"] = (captures >= SATURATION_LEVEL).any(dim=(0, 2))
-    flags["ill_conditioned"] = ~(condition < CONDITION_LIMIT)
-    flags["back_facing"] = (normal * view).sum(-1) <= 0
-    flags["bad_geometry"] = points[:, 2] <= 1e-3
-    valid = ~(flags["dark"] | flags["ill_conditioned"] | flags["back_facing"] | flags["bad_geometry"] | (length <= 0))
-    fallback = torch.tensor([0.0, 0.0, -1.0], dtype=normal.dtype)
-    normal = torch.where(valid[:, None], normal, fallback)
-    albedo = torch.where(valid[:, None], (g * normal[:, None, :]).sum(-1).clamp_min(0.0), torch.zeros_like(summed))
-    condition = torch.nan_to_num(condition, nan=1e30, posinf=1e30).clamp(1.0, 1e30)
-    return PSResult(normal=normal, albedo=albedo, valid=valid, condition=condition, flags=flags)
+MAX_PIXELS_PER_SOLVE = 1 << 19
+"""Pixels solved together (a full 512 x 612 image is one solve; larger inputs are split)."""
 
 
-def _geometry(points: torch.Tensor, lights: torch.Tensor, falloff):
-    offset = lights[None] - points[:, None]
-    distance = offset.norm(dim=-1).clamp_min(1e-3)
-    return offset / distance[..., None], falloff(distance)
+@dataclass(frozen=True)
+class WoodhamConfig:
+    """Settings of the Woodham least-squares solver (``solve_woodham``)."""
+
+    damping: float = 1e-9
+    """Tikhonov damping relative to each channel's 3x3 system (raised to the dtype's floor, as
+    ``PSConfig.damping``)."""
+    shadow_threshold: float = 0.01
+    """OLAT only: captures below this fraction of the pixel's brightest OLAT capture (per channel)
+    are treated as shadowed and dropped."""
+    max_shadow_iterations: int = 20
+    """Cap on attached-shadow mask updates."""
+    line_search_steps: int = 4
+    """Times a shadow-search step that would increase the residual is halved before giving up."""
+    kink_tolerance_deg: float = 0.5
+    """A rejected shadow-search step shorter than this (degrees) still counts as converged."""
+    restart_condition: float = 300.0
+    """Pixels with a larger condition number (or unconverged) are searched again from 12 more
+    starting normals (``math.inf`` disables restarts)."""
+    dark_threshold: float = 1e-3
+    """Pixels whose brightest capture is below this are flagged dark."""
+    saturation_threshold: float = 0.999
+    """Captures at or above this are dropped and their pixel flagged saturated."""
+    condition_threshold: float = 1e4
+    """Pixels whose normal condition number exceeds this are flagged ill_conditioned."""
+    min_distance: float = 1e-3
+    """Metres; distances are clamped to at least this; closer points or points with
+    z <= min_distance are flagged bad_geometry."""
+
+    def __post_init__(self):
+        if not self.damping > 0 or not 0 <= self.shadow_threshold < 1:
+            raise InputError("WoodhamConfig: damping must be positive and shadow_threshold in [0, 1)")
+        if self.max_shadow_iterations < 0 or self.line_search_steps < 0:
+            raise InputError("WoodhamConfig: iteration caps must be >= 0")
+        positive = ("kink_tolerance_deg", "restart_condition", "condition_threshold", "min_distance")
+        if not all(getattr(self, name) > 0 for name in positive):
+            raise InputError(f"WoodhamConfig: {', '.join(positive)} must be positive")
 
 
-def solve_woodham_olat(captures: torch.Tensor, points: torch.Tensor, lights: torch.Tensor, falloff, exposure: float = 1.0) -> PSResult:
-    """Woodham least squares on an OLAT stack.
+def woodham_fit(moments: Moments, damping: float):
+    """Per-channel least squares g_c = B_c^-1 r_c, normal = direction of sum_c g_c.
+
+    Returns (albedo (3, N), normal (3, N), converged (N,) all True), the shadow-search fit.
+    """
+    per_channel = damped_solve(moments.moment, moments.projection, damping)  # (3, 3, N)
+    normal = unit(per_channel.sum(0))
+    return albedo_step(normal, moments, damping), normal, torch.ones(normal.shape[1], dtype=torch.bool)
+
+
+class _OlatEvaluator:
+    """Shadow-search evaluator for an OLAT stack, gathering capture blocks on demand.
 
     Args:
-        captures: (K, N, 3) OLAT captures in [0, 1] of N pixels, image k lit by superpixel k alone
-            at unit intensity times ``exposure`` (backlight removed).
-        points: (N, 3) surface points, metres, camera frame.
-        lights: (K, 3) superpixel positions, metres, camera frame.
-        falloff: callable distance (metres) -> falloff factor.
-        exposure: exposure e of the captures.
-
-    Returns:
-        PSResult of (N, ...) tensors; albedo in units of the OLAT stack (a = rho / pi).
+        light_field: geometry of the N solved pixels.
+        light_emission: (K, 3) emission of light k in capture k.
+        captures: (K, P, 3) OLAT captures (any float dtype; not copied).
+        pixel_index: (N,) long rows of ``captures`` solved, or None for all P = N.
+        config: WoodhamConfig.
+        dtype: working dtype.
     """
-    check_array("captures", captures, (lights.shape[0], "N", 3), value_range=(0.0, float("inf")))
-    check_array("points", points, (captures.shape[1], 3))
-    results = []
-    for start in range(0, captures.shape[1], CHUNK):
-        block = slice(start, start + CHUNK)
-        intensity = captures[:, block].permute(1, 0, 2).double()  # (n, K, 3)
-        light_dirs, fall = _geometry(points[block].double(), lights.double(), falloff)
-        grey = intensity.mean(-1)
-        usable = intensity.amax(-1) < SATURATION_LEVEL
-        lit = (grey > 0.02 * grey.amax(-1, keepdim=True)) & usable
-        for _ in range(SHADOW_ITERATIONS):
-            weight = lit.double() * exposure * fall  # (n, K): b_k = e f_k l_k
-            system = torch.einsum("nk,nki,nkj->nij", weight * weight, light_dirs, light_dirs)
-            rhs = torch.einsum("nk,nkc,nki->nci", weight, intensity, light_dirs)
-            g, condition = _solve_channels(system, rhs)
-            normal = g.sum(1) / g.sum(1).norm(dim=-1, keepdim=True).clamp_min(1e-30)
-            lit = ((light_dirs * normal[:, None]).sum(-1) > 0) & usable
-        results.append(_result(g, condition, captures[:, block].double(), points[block].double()))
-    return _concatenate(results, captures.dtype)
+
+    def __init__(self, light_field: LightField, light_emission, captures, pixel_index, config, dtype):
+        self.field, self.light_emission, self.captures = light_field, light_emission, captures
+        self.pixel_index, self.config, self.dtype = pixel_index, config, dtype
+        self._flags = None
+
+    def _block(self, rows):
+        """Channel-major captures (3, n, K), equation weights (3, n, K) and capture scale (n,)."""
+        source = rows if self.pixel_index is None else self.pixel_index[rows]
+        # One contiguous copy of the block: reductions over lights in the strided view are slow.
+        captures = self.captures[:, source].permute(2, 1, 0).to(self.dtype).contiguous()
+        brightest = captures.amax(dim=2, keepdim=True)
+        weight = (captures < self.config.saturation_threshold) & (captures > self.config.shadow_threshold * brightest)
+        scale = captures.abs().amax(dim=(0, 2)).clamp_min(torch.finfo(self.dtype).tiny ** 0.5)
+        return captures, weight.to(self.dtype), scale
+
+    def capture_flags(self):
+        """dark (N,) and saturated (N,) bool over the whole stack, recorded by the first full
+        ``evaluate`` (which reads every capture anyway)."""
+        if self._flags is None:
+            self.evaluate(None, self.field.view.T)
+        return self._flags
+
+    def masks_differ(self, index, first, second):
+        return self.field.masks_differ(index, first, second)
+
+    def evaluate(self, index, normal):
+        moments = Moments.empty(normal.shape[1], self.dtype)
+        record = index is None and self._flags is None
+        if record:
+            dark = torch.empty(normal.shape[1], dtype=torch.bool)
+            saturated = torch.empty_like(dark)
+        for start, stop, rows in self.field.block_rows(index):
+            weight = self.field.shadowed_weights(rows, normal[:, start:stop])
+            captures, equation_weight, scale = self._block(rows)
+            raw = olat_moments(weight, self.light_emission, captures, equation_weight, self.field.points[rows], self.field.lights)
+            moments.write(start, stop, scaled_moments(*raw, scale))
+            if record:
+                dark[start:stop] = captures.amax(dim=(0, 2)) < self.config.dark_threshold
+                saturated[start:stop] = (captures >= self.config.saturation_threshold).any(dim=2).any(dim=0)
+        if record:
+            self._flags = (dark, saturated)
+        return moments
 
 
-def solve_woodham(captures: torch.Tensor, emission: torch.Tensor, points: torch.Tensor, lights: torch.Tensor, falloff) -> PSResult:
-    """Woodham least squares for M >= 3 patterns, per channel (needs rank 3 in every channel).
+def _solve_block(evaluator, light_field: LightField, config, dark_and_saturated=None) -> PSResult:
+    """Search and finalise; without ``dark_and_saturated`` the (OLAT) evaluator provides them."""
 
-    Args:
-        captures: (M, N, 3) captures in [0, 1].
-        emission: (M, K, 3) effective emission (exposure included).
-        points: (N, 3) surface points, metres, camera frame.
-        lights: (K, 3) superpixel positions, metres, camera frame.
-        falloff: callable distance (metres) -> falloff factor.
+    def fit(albedo, moments):
+        return woodham_fit(moments, config.damping)
 
-    Returns:
-        PSResult of (N, ...) tensors.
-    """
-    check_array("captures", captures, ("M", "N", 3), value_range=(0.0, float("inf")))
-    check_array("emission", emission, (captures.shape[0], lights.shape[0], 3), value_range=(0.0, float("inf")))
+    count = light_field.num_pixels
+    view = light_field.view.T.contiguous()
+    state, condition = restarted_search(evaluator, fit, torch.ones((3, count), dtype=view.dtype), view, config)
+    dark, saturated = evaluator.capture_flags() if dark_and_saturated is None else dark_and_saturated
+    albedo = state.albedo * (state.moments.capture_scale / state.moments.lighting_scale)
+    flags = {"dark": dark, "saturated": saturated, "not_converged": ~state.converged}
+    return finalise(state.normal.T, albedo.T, condition, flags, light_field, config)
+
+
+def _olat_emission(emission: torch.Tensor):
+    """(K, 3) per-light emission if ``emission`` (M, K, 3) is one-light-at-a-time, else None."""
+    num_patterns, num_lights, _ = emission.shape
+    if num_patterns != num_lights:
+        return None
+    diagonal = torch.diagonal(emission, dim1=0, dim2=1).T  # (K, 3)
+    off_diagonal = emission.abs().sum() - diagonal.abs().sum()
+    return diagonal if float(off_diagonal) == 0.0 else None
+
+
+def _check_inputs(captures, emission, points, lights, config, chunk_size):
+    check_array("captures", captures, ("M", "N", 3))
+    check_array("emission", emission, ("M", "K", 3), value_range=(0.0, math.inf))
+    check_array("points", points, ("N", 3))
+    check_array("lights", lights, ("K", 3))
+    if not (isinstance(captures, torch.Tensor) and isinstance(emission, torch.Tensor)):
+        raise InputError("captures and emission must be torch tensors")
+    if not (captures.is_floating_point() and emission.is_floating_point()):
+        raise InputError("captures and emission must be floating-point tensors")
+    if captures.shape[0] != emission.shape[0] or emission.shape[1] != lights.shape[0] or captures.shape[1] != points.shape[0]:
+        raise InputError(
+            f"inconsistent sizes: captures {tuple(captures.shape)}, emission {tuple(emission.shape)}, "
+            f"points {tuple(points.shape)}, lights {tuple(lights.shape)}"
+        )
     if captures.shape[0] < 3:
-        raise InputError(f"Woodham needs at least 3 patterns, got {captures.shape[0]}")
+        raise InputError(f"Woodham photometric stereo needs at least 3 captures, got {captures.shape[0]}")
+    if not isinstance(config, WoodhamConfig):
+        raise InputError(f"config must be a WoodhamConfig, got {type(config).__name__}")
+    if chunk_size < 1:
+        raise InputError(f"chunk_size must be positive, got {chunk_size}")
+
+
+@torch.no_grad()
+def _solve(captures, emission, points, pixel_index, lights, falloff, config, chunk_size, light_emission=None) -> PSResult:
+    """Shared driver; ``light_emission`` (K, 3) selects the OLAT path directly (``emission`` unused)."""
+    if light_emission is None:
+        light_emission = _olat_emission(emission.detach())
+    dtype = torch.promote_types(torch.promote_types(captures.dtype, (emission if light_emission is None else light_emission).dtype), torch.float32)
+    points = torch.as_tensor(points).detach().to(dtype)
+    lights = torch.as_tensor(lights).detach().to(dtype)
+    config = working_config(config, dtype)
+    if light_emission is not None:
+        light_emission, lighting = light_emission.to(dtype), None
+    else:
+        lighting = lighting_matrix(emission.detach().to(dtype), lights)
+    count = points.shape[0] if pixel_index is None else pixel_index.numel()
     results = []
-    for start in range(0, captures.shape[1], CHUNK):
-        block = slice(start, start + CHUNK)
-        intensity = captures[:, block].permute(1, 0, 2).double()  # (n, M, 3)
-        light_dirs, fall = _geometry(points[block].double(), lights.double(), falloff)
-        usable = (intensity < SATURATION_LEVEL).double()
-        lit = (light_dirs * -points[block].double()[:, None]).sum(-1) > 0  # start: lights the camera side sees
-        for _ in range(SHADOW_ITERATIONS):
-            b = torch.einsum("nk,mkc,nki->nmci", lit.double() * fall, emission.double(), light_dirs)
-            weighted = b * usable[..., None]
-            system = torch.einsum("nmci,nmcj->ncij", weighted, b)  # per-channel normal equations
-            rhs = torch.einsum("nmc,nmci->nci", intensity * usable, b)
-            solutions = [_solve_channels(system[:, c], rhs[:, c : c + 1]) for c in range(3)]
-            g = torch.cat([solution for solution, _ in solutions], dim=1)
-            condition = torch.stack([cond for _, cond in solutions]).amax(0)
-            normal = g.sum(1) / g.sum(1).norm(dim=-1, keepdim=True).clamp_min(1e-30)
-            lit = (light_dirs * normal[:, None]).sum(-1) > 0
-        results.append(_result(g, condition, captures[:, block].double(), points[block].double()))
-    return _concatenate(results, captures.dtype)
+    for start in range(0, count, MAX_PIXELS_PER_SOLVE):
+        if pixel_index is None:
+            rows = slice(start, start + MAX_PIXELS_PER_SOLVE)
+            block_index = None if count <= MAX_PIXELS_PER_SOLVE else torch.arange(start, min(count, start + MAX_PIXELS_PER_SOLVE))
+        else:
+            rows = block_index = pixel_index[start : start + MAX_PIXELS_PER_SOLVE]
+        light_field = LightField(points[rows], lights, falloff, config.min_distance, chunk_size)
+        if light_emission is not None:
+            evaluator = _OlatEvaluator(light_field, light_emission, captures.detach(), block_index, config, dtype)
+            results.append(_solve_block(evaluator, light_field, config))
+        else:
+            block_captures = captures[:, rows].detach().to(dtype).permute(0, 2, 1).contiguous()
+            equation_weight, capture_scale, dark, saturated = capture_flags(block_captures, config)
+            evaluator = PatternEvaluator(light_field, lighting, block_captures, equation_weight, capture_scale)
+            results.append(_solve_block(evaluator, light_field, config, (dark, saturated)))
+    return concatenate_results(results, dtype)
 
 
-def _concatenate(results: list[PSResult], dtype) -> PSResult:
-    return PSResult(
-        normal=torch.cat([r.normal for r in results]).to(dtype),
-        albedo=torch.cat([r.albedo for r in results]).to(dtype),
-        valid=torch.cat([r.valid for r in results]),
-        condition=torch.cat([r.condition for r in results]).to(dtype),
-        flags={name: torch.cat([r.flags[name] for r in results]) for name in FLAG_NAMES},
-    )
+def solve_woodham(captures, emission, points, lights, falloff, config: WoodhamConfig = WoodhamConfig(), chunk_size: int = 8192) -> PSResult:
+    """Woodham least-squares photometric stereo of a set of pixels (see the module docstring).
+
+    Args:
+        captures: (M, N, 3) linear captures, M >= 3: an OLAT stack (M = K, e.g. a scene's ``olat``
+            with ``emission`` the identity) or captures under M patterns; float16 stacks are read
+            block by block without a full copy.
+        emission: (M, K, 3) effective emission E >= 0 (exposure included). A diagonal one (capture
+            k lit by superpixel k alone) selects the OLAT path.
+        points: (N, 3) surface points, metres, camera frame.
+        lights: (K, 3) superpixel positions, metres, camera frame.
+        falloff: callable distance (metres) -> falloff factor, e.g. ``capture_sim.rig.Falloff``.
+        config: solver settings.
+        chunk_size: pixels per block of (pixels x lights) work.
+
+    Returns:
+        PSResult (no gradients) with (N, 3) normals and albedo (rho / pi), (N,) valid, condition
+        and flags, as ``solve_ps``.
+
+    Raises:
+        InputError: wrong shapes, non-finite or negative inputs, fewer than 3 captures, or a
+            falloff that is not positive and finite over the light distances.
+
+    Example:
+        >>> olat = scene_olat.reshape(144, -1, 3)  # doctest: +SKIP
+        >>> eye = torch.eye(144)[:, :, None].expand(144, 144, 3)
+        >>> result = solve_woodham(olat, eye, points, rig.lights(), rig.falloff)  # doctest: +SKIP
+    """
+    _check_inputs(captures, emission, points, lights, config, chunk_size)
+    return _solve(captures, emission, points, None, lights, falloff, config, chunk_size)
+
+
+def solve_woodham_olat(
+    captures, points, lights, falloff, exposure: float = 1.0, config: WoodhamConfig = WoodhamConfig(), chunk_size: int = 8192
+) -> PSResult:
+    """Woodham least squares on an OLAT stack (capture k lit by superpixel k alone at unit intensity).
+
+    Args:
+        captures: (K, N, 3) OLAT captures of N pixels (e.g. a scene's OLAT stack, or simulated OLAT
+            captures with the backlight removed), not copied.
+        points: (N, 3) surface points, metres, camera frame.
+        lights: (K, 3) superpixel positions, metres, camera frame.
+        falloff: callable distance (metres) -> falloff factor.
+        exposure: exposure e of the captures (the effective emission of light k is e).
+        config: solver settings.
+        chunk_size: pixels per block of (pixels x lights) work.
+
+    Returns:
+        PSResult of (N, ...) tensors, as ``solve_woodham``; albedo a = rho / pi in the stack's units.
+    """
+    check_array("lights", lights, ("K", 3))
+    check_array("captures", captures, (lights.shape[0], "N", 3))
+    if not exposure > 0:
+        raise InputError(f"exposure must be positive, got {exposure}")
+    emission = torch.full((lights.shape[0], 3), float(exposure), dtype=torch.promote_types(captures.dtype, torch.float32))
+    _check_inputs(captures, emission[None].expand(lights.shape[0], -1, -1), points, lights, config, chunk_size)
+    return _solve(captures, None, points, None, lights, falloff, config, chunk_size, light_emission=emission)
+
+
+def solve_woodham_image(
+    captures, emission, points, mask, lights, falloff, config: WoodhamConfig = WoodhamConfig(), chunk_size: int = 8192
+) -> PSResult:
+    """``solve_woodham`` on images: solves the pixels inside ``mask``.
+
+    Args:
+        captures: (M, H, W, 3) linear captures (e.g. a (K, H, W, 3) OLAT stack; not copied).
+        emission: (M, K, 3) effective emission (the identity for a scene's OLAT stack).
+        points: (H, W, 3) surface points, metres, camera frame.
+        mask: (H, W) bool, pixels to solve.
+        lights: (K, 3) superpixel positions, metres, camera frame.
+        falloff: callable distance (metres) -> falloff factor.
+        config: solver settings.
+        chunk_size: pixels per block of (pixels x lights) work.
+
+    Returns:
+        PSResult with (H, W, 3) normals and albedo and (H, W) valid, condition and flags; pixels
+        outside the mask are invalid with normal (0, 0, -1) and albedo 0.
+    """
+    check_image_inputs(captures, points, mask)
+    flat_captures, flat_points, pixel_index = image_pixels(captures, points, mask)
+    _check_inputs(flat_captures, emission, flat_points, lights, config, chunk_size)
+    result = _solve(flat_captures, emission, flat_points, pixel_index, lights, falloff, config, chunk_size)
+    return scatter_result(result, pixel_index, captures.shape[1], captures.shape[2])

@@ -1,0 +1,307 @@
+"""Near-field effective lighting of display superpixels at surface points, and its moments.
+
+Symbols (DESIGN sections 3 and 4), per pixel with surface point X and superpixel k at p_k:
+    d_k = |p_k - X|                   distance, metres
+    l_k = (p_k - X) / d_k             unit direction towards the light
+    f_k = falloff(d_k)                distance falloff
+    s_k = [l_k . n > 0]               attached-shadow mask for the normal n
+    b[m, c] = sum_k E[m, k, c] f_k s_k l_k      effective lighting vector of pattern m, channel c
+
+so that a Lambertian point with albedo a (RGB, absorbing the BRDF's 1 / pi) and normal n reads
+I[m, c] = a_c * b[m, c] . n.
+
+Never build (N, K, 3) tensors: with the (N, K) matrix w_k = s_k f_k / d_k,
+    b[m, c] = sum_k w_k E[m, k, c] p_k - X * sum_k w_k E[m, k, c],
+so every b of every pixel comes from one matrix product with the (K, 12 M) "lighting matrix"
+G[k, (m, c, :)] = (E[m, k, c] p_k, E[m, k, c]). The shadow test is a matrix product too:
+l_k . n > 0  <=>  p_k . n - X . n > 0.
+
+``LightField`` keeps one (pixels x lights) matrix, the unshadowed weights f_k / d_k; shadow masks
+and their products are formed in blocks of pixels that stay in the CPU cache and never stored.
+
+Layout: per-pixel quantities keep pixels on the last, contiguous axis (b is (M, 3, 3, N), the
+moments (3, 6, N)) so that the per-pixel 3x3 algebra runs as wide elementwise operations.
+Symmetric 3x3 moments store their 6 distinct entries in the order of ``SYMMETRIC_PAIRS``.
+"""
+from __future__ import annotations
+
+import torch
+
+from capture_sim.errors import InputError
+from capture_sim.rig import Falloff
+
+SYMMETRIC_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+"""(row, column) of the 6 stored entries of a symmetric 3x3 matrix: xx, yy, zz, xy, xz, yz."""
+
+
+class LightField:
+    """The superpixels' light at N surface points, evaluated in blocks of pixels.
+
+    Geometry is a constant: no gradients flow to points, lights or the falloff.
+
+    Attributes:
+        points: (N, 3) surface points, metres, camera frame.
+        lights: (K, 3) superpixel positions, metres, camera frame.
+        view: (N, 3) unit vectors towards the camera centre.
+        bad: (N,) bool, the point is not in front of the camera (z <= min_distance), lies within
+            ``min_distance`` of a superpixel (its distances are clamped to stay finite), or the
+            falloff is unusable there (its weights are zeroed).
+    """
+
+    def __init__(self, points: torch.Tensor, lights: torch.Tensor, falloff, min_distance: float, block_size: int):
+        """
+        Args:
+            points: (N, 3) surface points, metres, camera frame.
+            lights: (K, 3) superpixel positions, metres, camera frame.
+            falloff: callable mapping distances (any shape, metres) to falloff factors, e.g.
+                ``capture_sim.rig.Falloff``.
+            min_distance: metres; distances are clamped to at least this.
+            block_size: pixels per block of (pixels x lights) work.
+
+        Raises:
+            InputError: the falloff is not positive and finite at a pixel with good geometry.
+        """
+        self.points = points
+        self.lights = lights
+        self.block_size = block_size
+        self._lights_t = lights.T.contiguous()
+        self.view = -points / points.norm(dim=1, keepdim=True).clamp_min(torch.finfo(points.dtype).tiny ** 0.5)
+        # The unshadowed weights f_k / d_k are computed once and kept (N x K floats): every later
+        # evaluation then costs a shadow test and a matrix product instead of the distances again.
+        self.weights, self.bad = self._unshadowed_weights(falloff, min_distance)
+
+    @property
+    def num_pixels(self) -> int:
+        return self.points.shape[0]
+
+    def _unshadowed_weights(self, falloff, min_distance: float):
+        """(N, K) f_k / d_k (zeroed where the falloff is unusable) and the (N,) bad-geometry flags."""
+        light_norms = (self.lights * self.lights).sum(1)[None, :]
+        # f / d = d^-3 for the physical falloff: cheaper than a generic call, positive after the clamp.
+        inverse_square = isinstance(falloff, Falloff) and falloff.kind == "inverse_square"
+        weights = torch.empty((self.num_pixels, self.lights.shape[0]), dtype=self.points.dtype)
+        bad = self.points[:, 2] <= min_distance
+        for start in range(0, self.num_pixels, self.block_size):
+            block = slice(start, start + self.block_size)
+            points = self.points[block]
+            # d^2 = |p|^2 + |X|^2 - 2 X.p as one matrix product; the mild cancellation is harmless
+            # at the rig's scales (d >= ~0.1 m for points the camera can see).
+            squared = torch.addmm(light_norms, points, self._lights_t, alpha=-2.0)
+            squared.add_((points * points).sum(1, keepdim=True))
+            bad[block] |= squared.amin(1) < min_distance**2
+            squared.clamp_(min=min_distance**2)
+            if inverse_square:
+                inverse = squared.rsqrt_()
+                torch.mul(inverse, inverse, out=weights[block]).mul_(inverse)
+                continue
+            distance = squared.sqrt_()
+            weight = falloff(distance) / distance
+            usable = torch.isfinite(weight) & (weight > 0)
+            unusable = ~usable.all(1)
+            if bool((unusable & ~bad[block]).any()):
+                good = distance[~bad[block]]
+                raise InputError(
+                    f"falloff is not positive and finite over light distances {float(good.min()):.3f}..{float(good.max()):.3f} m"
+                )
+            bad[block] |= unusable
+            weights[block] = torch.where(usable, weight, torch.zeros((), dtype=weight.dtype))
+        return weights, bad
+
+    def _lit(self, rows, normal: torch.Tensor) -> torch.Tensor:
+        """(n, K) bool shadow masks of pixels ``rows`` with normals (3, n): p_k . n - X . n > 0."""
+        points = self.points[rows]
+        return torch.addmm(-(points * normal.T).sum(1, keepdim=True), normal.T, self._lights_t) > 0
+
+    def block_rows(self, index):
+        """Yield (start, stop, rows): blocks of entries start:stop of ``index`` ((n,) long pixel
+        indices, or None for all N pixels) and their pixel rows (a slice or index tensor)."""
+        count = self.num_pixels if index is None else index.numel()
+        for start in range(0, count, self.block_size):
+            stop = min(start + self.block_size, count)
+            yield start, stop, (slice(start, stop) if index is None else index[start:stop])
+
+    def masks_differ(self, index, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
+        """(n,) bool: whether normals ``first`` and ``second`` (3, n) of pixels ``index`` (or all)
+        have different shadow masks. Compared block by block, never stored."""
+        differ = torch.empty(first.shape[1], dtype=torch.bool)
+        for start, stop, rows in self.block_rows(index):
+            lit = self._lit(rows, first[:, start:stop])
+            differ[start:stop] = (lit != self._lit(rows, second[:, start:stop])).any(dim=1)
+        return differ
+
+    def shadowed_weights(self, rows, normal: torch.Tensor) -> torch.Tensor:
+        """(n, K) s_k f_k / d_k of pixels ``rows`` (slice or indices) with normals (3, n)."""
+        return self.weights[rows] * self._lit(rows, normal)
+
+    def vector_blocks(self, index, normal: torch.Tensor, lighting: torch.Tensor):
+        """Effective lighting vectors with the attached shadows of the given normals, by blocks.
+
+        Args:
+            index: (n,) long pixel indices, or None for all N pixels.
+            normal: (3, n) normals of those pixels.
+            lighting: (K, 12 M) lighting matrix from ``lighting_matrix`` (used as a constant).
+
+        Yields:
+            (start, stop, vectors): the block covers entries start:stop of ``index``; vectors
+            (M, 3, 3, stop - start) b[m, c, :, n] = sum_k E[m, k, c] f_k s_k l_k.
+        """
+        lighting = lighting.detach()
+        for start, stop, rows in self.block_rows(index):
+            summed = torch.mm(self.shadowed_weights(rows, normal[:, start:stop]), lighting).T.reshape(-1, 3, 4, stop - start)
+            yield start, stop, summed[:, :, :3] - self.points[rows].T[None, None] * summed[:, :, 3:]
+
+
+def lighting_matrix(emission: torch.Tensor, lights: torch.Tensor) -> torch.Tensor:
+    """The matrix G that turns shadowed falloff weights into effective lighting vectors.
+
+    Args:
+        emission: (M, K, 3) effective emission E (exposure included).
+        lights: (K, 3) superpixel positions, metres, camera frame.
+
+    Returns:
+        (K, M * 3 * 4) with G[k, (m, c, 0:3)] = E[m, k, c] p_k and G[k, (m, c, 3)] = E[m, k, c];
+        differentiable in ``emission``.
+    """
+    num_patterns, num_lights, _ = emission.shape
+    per_light = emission.permute(1, 0, 2)[..., None]  # (K, M, 3, 1)
+    homogeneous = torch.cat([lights, torch.ones_like(lights[:, :1])], dim=1)  # (K, 4)
+    return (per_light * homogeneous[:, None, None, :]).reshape(num_lights, num_patterns * 12)
+
+
+class _ShadowedLighting(torch.autograd.Function):
+    """b = vectors(G) for fixed geometry and normals; the value is supplied, and the shadowed
+    (pixels x lights) weights are re-formed block by block in the backward pass instead of being
+    kept in the autograd graph."""
+
+    @staticmethod
+    def forward(ctx, lighting, values, field, normal):
+        ctx.field, ctx.normal = field, normal
+        return values.clone()
+
+    @staticmethod
+    def backward(ctx, grad_vectors):
+        field, normal = ctx.field, ctx.normal
+        points_t = field.points.T[None, None]
+        # b = S[:3] - X S[3] with S = (w G)^T, so dL/dS[:3] = dL/db and dL/dS[3] = -X . dL/db.
+        grad_summed = torch.cat([grad_vectors, -(grad_vectors * points_t).sum(2, keepdim=True)], dim=2)
+        grad_summed = grad_summed.reshape(-1, field.num_pixels)  # (12 M, N)
+        grad_lighting = torch.zeros((field.lights.shape[0], grad_summed.shape[0]), dtype=grad_vectors.dtype)
+        for start, stop, rows in field.block_rows(None):
+            weight = field.shadowed_weights(rows, normal[:, start:stop])
+            grad_lighting.addmm_(weight.T, grad_summed[:, start:stop].T)
+        return grad_lighting, None, None, None
+
+
+def differentiable_vectors(field: LightField, normal: torch.Tensor, lighting: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """Lighting vectors of all N pixels as a differentiable function of the lighting matrix.
+
+    Args:
+        field: the pixels' light field.
+        normal: (3, N) normals that fix the shadow masks.
+        lighting: (K, 12 M) lighting matrix carrying gradients.
+        values: (M, 3, 3, N) the vectors of ``field.vector_blocks(None, normal, lighting)``,
+            already computed.
+
+    Returns:
+        (M, 3, 3, N) equal to ``values``, with gradients to ``lighting``.
+    """
+    return _ShadowedLighting.apply(lighting, values.detach(), field, normal.detach())
+
+
+def _moments_forward(vectors, captures, weight):
+    # Accumulating pattern by pattern keeps the temporaries small (several times faster than
+    # forming (M, ...) products and reducing them).
+    weighted = vectors * weight[:, :, None]
+    entries = [weighted[0, :, i] * vectors[0, :, j] for i, j in SYMMETRIC_PAIRS]
+    projection = weighted[0] * captures[0, :, None]
+    for m in range(1, vectors.shape[0]):
+        for entry, (i, j) in zip(entries, SYMMETRIC_PAIRS):
+            entry.addcmul_(weighted[m, :, i], vectors[m, :, j])
+        projection.addcmul_(weighted[m], captures[m, :, None])
+    energy = (weight * captures * captures).sum(0)
+    return torch.stack(entries, dim=1), projection, energy
+
+
+class _LightingMoments(torch.autograd.Function):
+    """Moments with a hand-written backward: autograd through the sliced in-place accumulation
+    would allocate a full-size gradient per slice and be ~10x slower."""
+
+    @staticmethod
+    def forward(ctx, vectors, captures, weight):
+        ctx.save_for_backward(vectors, captures, weight)
+        return _moments_forward(vectors, captures, weight)
+
+    @staticmethod
+    def backward(ctx, grad_moment, grad_projection, grad_energy):
+        vectors, captures, weight = ctx.saved_tensors
+        # dB_c/db: d(b_i b_j)/db_i = b_j, so dL/db_i = q sum_j S_ij b_j with S the symmetric
+        # gradient (diagonal entries doubled); dr_c/db_i = q I; dr_c/dI = q b; d(q I^2)/dI = 2 q I.
+        xx, yy, zz, xy, xz, yz = grad_moment.unbind(1)
+        symmetric = torch.stack(
+            [torch.stack([2 * xx, xy, xz], 1), torch.stack([xy, 2 * yy, yz], 1), torch.stack([xz, yz, 2 * zz], 1)], 1
+        )  # (3 c, 3 i, 3 j, N)
+        grad_vectors = grad_projection[None] * captures[:, :, None]
+        for j in range(3):
+            grad_vectors.addcmul_(symmetric[None, :, :, j], vectors[:, :, None, j])
+        grad_vectors *= weight[:, :, None]
+        grad_captures = weight * ((grad_projection[None] * vectors).sum(2) + 2 * grad_energy[None] * captures)
+        return grad_vectors, grad_captures, None
+
+
+def lighting_moments(lighting_vectors: torch.Tensor, captures: torch.Tensor, equation_weight: torch.Tensor):
+    """Per-channel normal-equation moments of the model I[m, c] = a_c b[m, c] . n.
+
+    Args:
+        lighting_vectors: (M, 3, 3, N) effective lighting vectors b (pattern, channel, xyz, pixel).
+        captures: (M, 3, N) captured values.
+        equation_weight: (M, 3, N) weight of each equation (0 drops it, e.g. when saturated);
+            a constant.
+
+    Returns:
+        moment: (3, 6, N) symmetric B_c = sum_m q b b^T (channel, entry of SYMMETRIC_PAIRS, pixel).
+        projection: (3, 3, N) r_c = sum_m q I b.
+        energy: (3, N) sum_m q I^2.
+        Differentiable in ``lighting_vectors`` and ``captures``.
+    """
+    if torch.is_grad_enabled() and (lighting_vectors.requires_grad or captures.requires_grad):
+        return _LightingMoments.apply(lighting_vectors, captures, equation_weight.detach())
+    return _moments_forward(lighting_vectors, captures, equation_weight)
+
+
+def olat_moments(weight, light_emission, captures, equation_weight, points, lights):
+    """The moments of ``lighting_moments`` for one-light-at-a-time captures, without b vectors.
+
+    With capture k lit by superpixel k alone (emission e[k, c]), b[k, c] = e_kc w_k (p_k - X) and
+    B_c = sum_k u_kc (p_k - X)(p_k - X)^T, u_kc = q_kc e_kc^2 w_k^2, which expands into products
+    of (N, K) weights with per-light tables of p p^T, p and 1: no (N, K, 3) tensor is formed.
+
+    Args:
+        weight: (N, K) shadowed falloff weights s_k f_k / d_k.
+        light_emission: (K, 3) effective emission e of light k in capture k.
+        captures: (3, N, K) OLAT captures of the block, channel-major.
+        equation_weight: (3, N, K) weight of each equation (0 drops it).
+        points: (N, 3) surface points, metres, camera frame.
+        lights: (K, 3) superpixel positions, metres, camera frame.
+
+    Returns:
+        moment (3, 6, N), projection (3, 3, N) and energy (3, N), as ``lighting_moments``.
+    """
+    scaled = weight[None, :, :] * light_emission.T[:, None, :]  # (3, N, K): e_kc w_k
+    weighted = scaled * equation_weight
+    products = torch.stack([lights[:, i] * lights[:, j] for i, j in SYMMETRIC_PAIRS], dim=1)
+    table = torch.cat([products, lights, torch.ones_like(lights[:, :1])], dim=1)  # (K, 10)
+    moment_terms = torch.matmul(weighted * scaled, table).permute(0, 2, 1)  # (3, 10, N)
+    projection_terms = torch.matmul(weighted * captures, table[:, 6:]).permute(0, 2, 1)  # (3, 4, N)
+    x = points.T  # (3, N)
+    first, total = moment_terms[:, 6:9], moment_terms[:, 9]
+    # B_ij = sum u p_i p_j - X_j sum u p_i - X_i sum u p_j + X_i X_j sum u
+    moment = torch.stack(
+        [
+            moment_terms[:, entry] - x[j] * first[:, i] - x[i] * first[:, j] + x[i] * x[j] * total
+            for entry, (i, j) in enumerate(SYMMETRIC_PAIRS)
+        ],
+        dim=1,
+    )
+    projection = projection_terms[:, :3] - projection_terms[:, 3:] * x[None]
+    energy = (equation_weight * captures * captures).sum(2)
+    return moment, projection, energy

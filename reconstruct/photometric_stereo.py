@@ -1,0 +1,407 @@
+"""Analytic multiplexed RGB photometric stereo, iterated to convergence with attached shadows.
+
+Model (DESIGN section 4; Lambertian, near-field), per pixel and equation (pattern m, channel c):
+    I[m, c] = a_c * b[m, c] . n,     b[m, c] = sum_k E[m, k, c] f_k s_k l_k
+with a the RGB albedo (it absorbs the Lambertian 1 / pi: a = rho / pi), n the unit normal, E the
+effective emission (exposure included), f_k the falloff, l_k the unit direction to superpixel k and
+s_k = [l_k . n > 0] the attached-shadow mask (superpixels behind the tangent plane add nothing).
+
+Algorithm (all pixels at once; ``reconstruct.reference`` is a plain per-pixel version):
+1. start from n = view direction, its shadow mask, and albedo a_c = max_m I[m, c];
+2. for the current masks, alternate to convergence (the published method stops after one
+   alternation and is biased; ``reconstruct.pixel_solve``):
+     normal given albedo: (sum_c a_c^2 B_c + lambda I) n = sum_c a_c r_c with the per-channel
+     moments B_c = sum_m b b^T, r_c = sum_m I b, solved in closed form, normalised, with
+     damping lambda relative to the system's scale;
+     albedo given normal: a_c = n . r_c / (n^T B_c n + mu_c), clamped at 0;
+3. move to the new normal's own mask if that lowers the true residual (line search), repeat
+   2-3 until the masks reproduce themselves; restart doubtful pixels from 12 other normals and keep
+   the lowest residual (``reconstruct.shadow_search``).
+Saturated equations get zero weight. Quantities are rescaled per pixel so that every 3x3 system
+is of order one in any dtype.
+
+Gradients (w.r.t. captures and emission; geometry and the shadow masks are constants) are exact
+implicit-function-theorem gradients of the converged fixed point a* = Phi(a*) of one alternation
+Phi (``pixel_solve.implicit_step``): after the search, one differentiable Newton step
+    a_out = a* + (I - dPhi/da)^-1 (Phi(a*) - a*)      (a*, dPhi/da detached)
+has the derivative (I - dPhi/da)^-1 dPhi/dtheta of the fixed point. Converged pixels output
+that step's value (a Newton refinement: it differs from the no-gradient result by less than the
+tolerance); unconverged ones keep the searched value with the same derivative. The cost is one
+alternation plus three small per-pixel backward passes; the shadowed (pixels x lights) weights
+are re-formed block by block in the backward pass instead of being kept. Unrolling a few
+alternations from a detached start would be cheaper but biased. The gradient is the same in every
+configuration; ``torch.autograd.gradcheck`` needs tight convergence (tolerance_deg=1e-10,
+max_alternations=1000, as in tests/test_photometric_stereo.py) because finite differences of the
+solver are otherwise limited by its stopping tolerance.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from capture_sim.errors import InputError, check_array
+from reconstruct.lighting import LightField, differentiable_vectors, lighting_matrix
+from reconstruct.pixel_solve import CONDITION_CAP, Moments, alternate, implicit_step, normalised_moments, take_pixels
+from reconstruct.shadow_search import restarted_search
+
+FLAG_NAMES = ("dark", "saturated", "ill_conditioned", "back_facing", "bad_geometry", "not_converged")
+MAX_PIXELS_PER_SOLVE = 1 << 19
+"""Pixels solved together (a full 512 x 612 image is one solve; larger inputs are split)."""
+
+
+@dataclass(frozen=True)
+class PSConfig:
+    """Settings of the analytic photometric-stereo solver (``solve_ps``)."""
+
+    damping: float = 1e-9
+    """Tikhonov damping relative to each 3x3 system's scale: lambda = damping * trace / 3. Raised
+    to at least 8 machine epsilons of the working dtype (about 1e-6 in float32) so that damped
+    systems stay positive definite after rounding. Larger values bias ill-conditioned pixels."""
+    max_shadow_iterations: int = 20
+    """Cap on attached-shadow mask updates (each re-solves only pixels whose mask changed)."""
+    max_alternations: int = 50
+    """Cap on albedo/normal alternations per shadow mask (usually a few suffice)."""
+    tolerance_deg: float = 1e-3
+    """Alternations stop when no pixel's normal moves by more than this (degrees)."""
+    line_search_steps: int = 4
+    """Times a shadow-search step that would increase the residual is halved before giving up."""
+    kink_tolerance_deg: float = 0.5
+    """A pixel whose shadow-search step is rejected sits at a kink of the shadowed model (a
+    superpixel on its tangent plane); it counts as converged if that step is shorter (degrees)."""
+    restart_condition: float = 300.0
+    """Pixels whose condition number exceeds this, or that did not converge, are searched again
+    from 12 more starting normals and keep the lowest residual (``math.inf`` disables restarts)."""
+    dark_threshold: float = 1e-3
+    """Pixels whose brightest capture is below this (full scale 1) are flagged dark."""
+    saturation_threshold: float = 0.999
+    """Captures at or above this are saturated: their equations are dropped, the pixel flagged."""
+    condition_threshold: float = 1e4
+    """Pixels whose normal condition number (``pixel_solve.normal_condition``, roughly the squared
+    noise amplification of the normal) exceeds this are flagged ill_conditioned."""
+    min_distance: float = 1e-3
+    """Metres; light distances are clamped to at least this, and points within it of a
+    superpixel or not in front of the camera (z <= min_distance) are flagged bad_geometry."""
+
+    def __post_init__(self):
+        if not self.damping > 0:
+            raise InputError(f"PSConfig.damping must be positive, got {self.damping}")
+        if self.max_shadow_iterations < 0 or self.max_alternations < 1 or self.line_search_steps < 0:
+            raise InputError("PSConfig: iteration caps must be >= 0 (max_alternations >= 1)")
+        positive = ("tolerance_deg", "kink_tolerance_deg", "restart_condition", "condition_threshold", "min_distance")
+        if not all(getattr(self, name) > 0 for name in positive):
+            raise InputError(f"PSConfig: {', '.join(positive)} must be positive")
+
+
+@dataclass(frozen=True, eq=False)
+class PSResult:
+    """Per-pixel result of a photometric-stereo solve (shapes (N, ...) or image-shaped (H, W, ...)).
+
+    Attributes:
+        normal: (..., 3) unit normals, camera frame, facing the camera (n . v > 0) where valid;
+            (0, 0, -1) where invalid.
+        albedo: (..., 3) RGB albedo >= 0 with the 1 / pi of the Lambertian BRDF absorbed
+            (a = rho / pi); 0 where invalid.
+        valid: (...) bool: not dark, not ill-conditioned, not back-facing, not bad geometry (and
+            inside the mask for image solves). Saturated and not-converged pixels stay valid: their
+            flags say that the estimate is degraded, not meaningless.
+        condition: (...) normal condition number (``pixel_solve.normal_condition``), in
+            [1, CONDITION_CAP].
+        flags: dict of (...) bool masks named in FLAG_NAMES: dark, saturated, ill_conditioned,
+            back_facing, bad_geometry (point behind the camera or on a superpixel), not_converged
+            (shadow search stopped by its caps or away from a self-consistent mask).
+    """
+
+    normal: torch.Tensor
+    albedo: torch.Tensor
+    valid: torch.Tensor
+    condition: torch.Tensor
+    flags: dict = field(default_factory=dict)
+
+
+def working_config(config, dtype):
+    """``config`` with the damping raised to the working dtype's floor (see PSConfig.damping)."""
+    floor = 8 * torch.finfo(dtype).eps
+    return config if config.damping >= floor else dataclasses.replace(config, damping=floor)
+
+
+def capture_flags(captures: torch.Tensor, config):
+    """Equation weights and per-pixel capture statistics.
+
+    Args:
+        captures: (M, 3, N) captures, pixels last.
+        config: settings with ``saturation_threshold`` and ``dark_threshold``.
+
+    Returns:
+        equation_weight (M, 3, N) (0 for saturated equations), capture_scale (N,) max |I|,
+        dark (N,) bool, saturated (N,) bool.
+    """
+    captures = captures.detach()
+    saturated_equation = captures >= config.saturation_threshold
+    brightest = captures.amax(dim=(0, 1))
+    scale = captures.abs().amax(dim=(0, 1)).clamp_min(torch.finfo(captures.dtype).tiny ** 0.5)
+    return (~saturated_equation).to(captures.dtype), scale, brightest < config.dark_threshold, saturated_equation.any(dim=(0, 1))
+
+
+def finalise(normal, albedo, condition, flags: dict, field_: LightField, config) -> PSResult:
+    """Add the geometric and conditioning flags, decide validity, give invalid pixels defaults.
+
+    Args:
+        normal: (N, 3) estimated unit normals.
+        albedo: (N, 3) estimated albedo.
+        condition: (N,) normal condition numbers.
+        flags: dark, saturated and not_converged, (N,) bool each.
+        field_: the pixels' light field (view directions, bad-geometry marks).
+        config: settings with ``condition_threshold``.
+
+    Returns:
+        PSResult of the N pixels.
+    """
+    flags = dict(flags)
+    flags["ill_conditioned"] = condition > config.condition_threshold
+    flags["back_facing"] = (normal.detach() * field_.view).sum(1) <= 0
+    flags["bad_geometry"] = field_.bad
+    valid = ~(flags["dark"] | flags["ill_conditioned"] | flags["back_facing"] | flags["bad_geometry"])
+    default_normal = torch.tensor([0.0, 0.0, -1.0], dtype=normal.dtype)
+    normal = torch.where(valid[:, None], normal, default_normal)
+    albedo = torch.where(valid[:, None], albedo, torch.zeros((), dtype=albedo.dtype))
+    return PSResult(normal=normal, albedo=albedo, valid=valid, condition=condition, flags={name: flags[name] for name in FLAG_NAMES})
+
+
+class PatternEvaluator:
+    """Shadow-search evaluator for multiplexed patterns (see ``reconstruct.shadow_search``).
+
+    Moments are formed block by block, straight from each block of lighting vectors.
+
+    Args:
+        light_field: geometry of the N pixels.
+        lighting: (K, 12 M) lighting matrix (used as a constant).
+        captures: (M, 3, N) captures, pixels last.
+        equation_weight: (M, 3, N) equation weights.
+        capture_scale: (N,) per-pixel capture normalisation.
+        keep_vectors: keep the lighting vectors in the moments (needed for gradients).
+    """
+
+    def __init__(self, light_field: LightField, lighting, captures, equation_weight, capture_scale, keep_vectors: bool = False):
+        self.field, self.lighting = light_field, lighting.detach()
+        self.captures, self.equation_weight, self.capture_scale = captures.detach(), equation_weight, capture_scale
+        self.num_patterns = (lighting.shape[1] // 12) if keep_vectors else None
+
+    def masks_differ(self, index, first, second):
+        return self.field.masks_differ(index, first, second)
+
+    def evaluate(self, index, normal):
+        count = normal.shape[1]
+        moments = Moments.empty(count, normal.dtype, self.num_patterns)
+        for start, stop, vectors in self.field.vector_blocks(index, normal, self.lighting):
+            if index is None:
+                captures, weight, scale = self.captures[..., start:stop], self.equation_weight[..., start:stop], self.capture_scale[start:stop]
+            else:
+                pixels = index[start:stop]
+                captures, weight = take_pixels(self.captures, pixels), take_pixels(self.equation_weight, pixels)
+                scale = self.capture_scale[pixels]
+            moments.write(start, stop, normalised_moments(vectors, captures, weight, scale), vectors)
+        return moments
+
+
+def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, block_size: int) -> PSResult:
+    """Solve N pixels: captures (M, N, 3), lighting matrix (K, 12 M), points (N, 3)."""
+    track_gradient = torch.is_grad_enabled() and (captures.requires_grad or lighting.requires_grad)
+    captures = captures.permute(0, 2, 1).contiguous()  # (M, 3, N): pixels last
+    with torch.no_grad():
+        light_field = LightField(points, lights, falloff, config.min_distance, block_size)
+        equation_weight, capture_scale, dark, saturated = capture_flags(captures, config)
+        evaluator = PatternEvaluator(light_field, lighting, captures, equation_weight, capture_scale, keep_vectors=track_gradient)
+
+        def fit(albedo, moments):
+            return alternate(albedo, moments, config.damping, config.tolerance_deg, config.max_alternations)
+
+        initial_albedo = (captures.detach() / capture_scale).amax(dim=0).clamp_min(0)
+        view = light_field.view.T.contiguous()
+        state, condition = restarted_search(evaluator, fit, initial_albedo, view, config)
+
+    normal, albedo = state.normal, state.albedo
+    if track_gradient:
+        vectors = differentiable_vectors(light_field, state.normal, lighting, state.moments.vectors)
+        graph_moments = normalised_moments(vectors, captures, equation_weight, capture_scale)
+        graph_albedo, graph_normal = implicit_step(albedo, graph_moments, config.damping)
+        # Converged pixels take the Newton step's value (it refines the fixed point, so outputs
+        # differ from the no-gradient ones by less than the tolerance); the others keep the
+        # searched value, where a step towards the fixed point of their mask could jump.
+        converged = state.converged[None]
+        albedo = torch.where(converged, graph_albedo, albedo + (graph_albedo - graph_albedo.detach()))
+        normal = torch.where(converged, graph_normal, normal + (graph_normal - graph_normal.detach()))
+    albedo = albedo * (state.moments.capture_scale / state.moments.lighting_scale)
+    flags = {"dark": dark, "saturated": saturated, "not_converged": ~state.converged}
+    return finalise(normal.T, albedo.T, condition, flags, light_field, config)
+
+
+def concatenate_results(results: list[PSResult], dtype) -> PSResult:
+    """Concatenate per-pixel results along the pixel axis (an empty list gives 0 pixels)."""
+    if not results:
+        empty = torch.zeros((0, 3), dtype=dtype)
+        none = torch.zeros(0, dtype=torch.bool)
+        return PSResult(empty, empty.clone(), none, torch.zeros(0, dtype=dtype), {name: none.clone() for name in FLAG_NAMES})
+    if len(results) == 1:
+        return results[0]
+    return PSResult(
+        normal=torch.cat([r.normal for r in results]),
+        albedo=torch.cat([r.albedo for r in results]),
+        valid=torch.cat([r.valid for r in results]),
+        condition=torch.cat([r.condition for r in results]),
+        flags={name: torch.cat([r.flags[name] for r in results]) for name in FLAG_NAMES},
+    )
+
+
+def _check_inputs(captures, emission, points, lights, config, chunk_size):
+    check_array("captures", captures, ("M", "N", 3))
+    check_array("emission", emission, ("M", "K", 3), value_range=(0.0, math.inf))
+    check_array("points", points, ("N", 3))
+    check_array("lights", lights, ("K", 3))
+    if not (isinstance(captures, torch.Tensor) and isinstance(emission, torch.Tensor)):
+        raise InputError("captures and emission must be torch tensors")
+    if not (captures.is_floating_point() and emission.is_floating_point()):
+        raise InputError("captures and emission must be floating-point tensors")
+    if captures.shape[0] != emission.shape[0]:
+        raise InputError(f"captures have {captures.shape[0]} patterns but emission has {emission.shape[0]}")
+    if emission.shape[1] != lights.shape[0]:
+        raise InputError(f"emission drives {emission.shape[1]} superpixels but there are {lights.shape[0]} lights")
+    if captures.shape[1] != points.shape[0]:
+        raise InputError(f"captures have {captures.shape[1]} pixels but points has {points.shape[0]}")
+    if not isinstance(config, PSConfig):
+        raise InputError(f"config must be a PSConfig, got {type(config).__name__}")
+    if chunk_size < 1:
+        raise InputError(f"chunk_size must be positive, got {chunk_size}")
+
+
+def solve_pixels(solve_block, captures, emission, points, pixel_index, lights, config, chunk_size) -> PSResult:
+    """Shared driver: run ``solve_block`` over the pixels ``pixel_index`` (or all) of flat inputs.
+
+    Args:
+        solve_block: (captures (M, n, 3), lighting (K, 12 M), points (n, 3), lights, config) -> PSResult.
+        captures: (M, P, 3); points: (P, 3); pixel_index: (N,) long indices into P, or None for all.
+        emission, lights, config, chunk_size: as ``solve_ps``.
+    """
+    dtype = torch.promote_types(captures.dtype, emission.dtype)
+    captures, emission = captures.to(dtype), emission.to(dtype)
+    points = torch.as_tensor(points).detach().to(dtype)
+    lights = torch.as_tensor(lights).detach().to(dtype)
+    lighting = lighting_matrix(emission, lights)
+    config = working_config(config, dtype)
+    count = points.shape[0] if pixel_index is None else pixel_index.numel()
+    results = []
+    for start in range(0, count, MAX_PIXELS_PER_SOLVE):
+        block = slice(start, start + MAX_PIXELS_PER_SOLVE) if pixel_index is None else pixel_index[start : start + MAX_PIXELS_PER_SOLVE]
+        results.append(solve_block(captures[:, block], lighting, points[block], lights, config))
+    return concatenate_results(results, dtype)
+
+
+def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSConfig(), chunk_size: int = 8192) -> PSResult:
+    """Analytic multiplexed RGB photometric stereo of a set of pixels (see the module docstring).
+
+    Args:
+        captures: (M, N, 3) linear captures in [0, 1] (1 = saturation) of N pixels under M patterns.
+        emission: (M, K, 3) effective emission E >= 0 (exposure included), such that noise-free
+            unclipped captures are I[m, n, c] = sum_k E[m, k, c] O[k, n, c].
+        points: (N, 3) surface points, metres, camera frame (from a depth map or a plane prior).
+        lights: (K, 3) superpixel positions, metres, camera frame.
+        falloff: callable distance (metres) -> falloff factor, e.g. ``capture_sim.rig.Falloff``.
+        config: solver settings.
+        chunk_size: pixels per block of (pixels x lights) work; bounds the temporaries (the
+            unshadowed N x K weights are kept once), results do not depend on it.
+
+    Returns:
+        PSResult with (N, 3) normals and albedo, (N,) valid, condition and flags. Differentiable
+        w.r.t. ``captures`` and ``emission`` (exact implicit gradients of the converged solution);
+        no gradient flows to points or lights.
+
+    Raises:
+        InputError: wrong shapes, non-finite or negative inputs, or a falloff that is not positive
+            and finite over the light distances of pixels with valid geometry.
+
+    Example:
+        >>> from capture_sim.rig import load_rig
+        >>> rig = load_rig()
+        >>> result = solve_ps(captures, emission, points, rig.lights(), rig.falloff)  # doctest: +SKIP
+        >>> result.normal[result.valid]  # doctest: +SKIP
+    """
+    _check_inputs(captures, emission, points, lights, config, chunk_size)
+
+    def solve_block(block_captures, lighting, block_points, block_lights, block_config):
+        return _solve_block(block_captures, lighting, block_points, block_lights, falloff, block_config, chunk_size)
+
+    return solve_pixels(solve_block, captures, emission, points, None, lights, config, chunk_size)
+
+
+def check_image_inputs(captures, points, mask):
+    """Check the shapes of image-shaped solver inputs: captures (M, H, W, 3), points (H, W, 3),
+    mask (H, W) bool (values are checked on the flattened inputs, once)."""
+    check_array("captures", captures, ("M", "H", "W", 3), finite=False)
+    check_array("points", points, (captures.shape[1], captures.shape[2], 3))
+    check_array("mask", mask, (captures.shape[1], captures.shape[2]))
+    if torch.as_tensor(mask).dtype != torch.bool:
+        raise InputError("mask must be a bool array")
+
+
+def scatter_result(result: PSResult, pixel_index: torch.Tensor, height: int, width: int) -> PSResult:
+    """Scatter a PSResult of the pixels ``pixel_index`` (flat indices into H * W) into images.
+
+    Pixels not listed get normal (0, 0, -1), albedo 0, valid False, condition CONDITION_CAP and
+    all flags False. Differentiable in the normals and albedo.
+    """
+    size = height * width
+
+    def scatter(values, fill):
+        image = torch.full((size, *values.shape[1:]), fill, dtype=values.dtype)
+        return image.index_put((pixel_index,), values).reshape(height, width, *values.shape[1:])
+
+    default_normal = torch.tensor([0.0, 0.0, -1.0], dtype=result.normal.dtype).expand(size, 3)
+    return PSResult(
+        normal=default_normal.index_put((pixel_index,), result.normal).reshape(height, width, 3),
+        albedo=scatter(result.albedo, 0.0),
+        valid=scatter(result.valid, False),
+        condition=scatter(result.condition, CONDITION_CAP),
+        flags={name: scatter(value, False) for name, value in result.flags.items()},
+    )
+
+
+def image_pixels(captures, points, mask):
+    """Flat views of image inputs: captures (M, H*W, 3), points (H*W, 3) and the (N,) mask indices."""
+    num_patterns, height, width, _ = captures.shape
+    flat_captures = captures.reshape(num_patterns, height * width, 3)
+    flat_points = torch.as_tensor(points).reshape(height * width, 3)
+    pixel_index = torch.nonzero(torch.as_tensor(mask).reshape(-1)).squeeze(1)
+    return flat_captures, flat_points, pixel_index
+
+
+def solve_ps_image(
+    captures, emission, points, mask, lights, falloff, config: PSConfig = PSConfig(), chunk_size: int = 8192
+) -> PSResult:
+    """``solve_ps`` on images: solves the pixels inside ``mask``.
+
+    Args:
+        captures: (M, H, W, 3) linear captures in [0, 1].
+        emission: (M, K, 3) effective emission E >= 0 (exposure included).
+        points: (H, W, 3) surface points, metres, camera frame.
+        mask: (H, W) bool, pixels to solve.
+        lights: (K, 3) superpixel positions, metres, camera frame.
+        falloff: callable distance (metres) -> falloff factor.
+        config: solver settings.
+        chunk_size: pixels per block of (pixels x lights) work.
+
+    Returns:
+        PSResult with (H, W, 3) normals and albedo and (H, W) valid, condition and flags; pixels
+        outside the mask are invalid with normal (0, 0, -1) and albedo 0. Differentiable w.r.t.
+        ``captures`` and ``emission``.
+    """
+    check_image_inputs(captures, points, mask)
+    flat_captures, flat_points, pixel_index = image_pixels(captures, points, mask)
+    _check_inputs(flat_captures, emission, flat_points, lights, config, chunk_size)
+
+    def solve_block(block_captures, lighting, block_points, block_lights, block_config):
+        return _solve_block(block_captures, lighting, block_points, block_lights, falloff, block_config, chunk_size)
+
+    result = solve_pixels(solve_block, flat_captures, emission, flat_points, pixel_index, lights, config, chunk_size)
+    return scatter_result(result, pixel_index, captures.shape[1], captures.shape[2])

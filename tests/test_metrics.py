@@ -1,0 +1,82 @@
+"""Normal-error and relighting metrics against hand computations."""
+import math
+
+import pytest
+import torch
+
+from capture_sim.errors import InputError
+from reconstruct.metrics import PSNR_CAP_DB, angular_error_deg, normal_metrics, psnr, ssim
+
+
+def test_angular_error_hand_values():
+    down = torch.tensor([0.0, 0.0, -1.0])
+    estimates = torch.tensor([[0.0, 0.0, -1.0], [0.0, 1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 0.0, 2.0], [0.0, 0.0, 0.0]])
+    expected = torch.tensor([0.0, 45.0, 90.0, 180.0, 90.0])
+    torch.testing.assert_close(angular_error_deg(estimates, down.expand(5, 3)), expected, atol=1e-5, rtol=0)
+
+
+def test_angular_error_resolves_tiny_angles_in_float32():
+    angle = math.radians(1e-3)
+    tilted = torch.tensor([[math.sin(angle), 0.0, -math.cos(angle)]], dtype=torch.float32)
+    error = angular_error_deg(tilted, torch.tensor([[0.0, 0.0, -1.0]]))
+    assert abs(float(error) - 1e-3) < 1e-6
+
+
+def test_angular_error_gradient_is_finite():
+    estimate = torch.tensor([[0.3, 0.1, -1.0], [0.0, 0.0, -1.0], [0.0, 0.0, -2.0], [0.0, 0.0, 0.0]], requires_grad=True)
+    truth = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.3, -1.0], [0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
+    angular_error_deg(estimate, truth).sum().backward()
+    assert torch.isfinite(estimate.grad).all()
+
+
+def test_normal_metrics_hand_values():
+    truth = torch.tensor([0.0, 0.0, -1.0]).expand(2, 3, 3)
+    degrees = torch.tensor([[1.0, 4.0, 6.0], [15.0, 25.0, 80.0]])
+    radians = torch.deg2rad(degrees)
+    estimate = torch.stack([torch.sin(radians), torch.zeros_like(radians), -torch.cos(radians)], dim=-1)
+    mask = torch.tensor([[True, True, True], [True, True, False]])
+    metrics = normal_metrics(estimate, truth, mask)
+    assert metrics["mae"] == pytest.approx((1 + 4 + 6 + 15 + 25) / 5, abs=1e-4)
+    assert metrics["median"] == pytest.approx(6.0, abs=1e-4)
+    assert metrics["under_5"] == pytest.approx(2 / 5)
+    assert metrics["under_10"] == pytest.approx(3 / 5)
+    assert metrics["under_20"] == pytest.approx(4 / 5)
+    assert metrics["under_30"] == pytest.approx(1.0)
+    assert metrics["count"] == 5
+    assert normal_metrics(estimate, truth, torch.zeros(2, 3, dtype=torch.bool))["count"] == 0
+
+
+def test_psnr_hand_value_inside_mask_only():
+    truth = torch.zeros(1, 4, 5, 3)
+    prediction = truth.clone()
+    mask = torch.zeros(4, 5, dtype=torch.bool)
+    mask[1:3, 1:4] = True
+    prediction[0, 1:3, 1:4] = 0.1  # MSE over the mask = 0.01 -> 20 dB
+    prediction[0, 0, 0] = 1.0  # outside the mask: ignored
+    assert psnr(prediction, truth, mask) == pytest.approx(20.0, abs=1e-5)
+    assert psnr(truth, truth, mask) == PSNR_CAP_DB
+
+
+def test_ssim_sanity():
+    generator = torch.Generator().manual_seed(0)
+    image = torch.rand(2, 16, 20, 3, generator=generator)
+    mask = torch.ones(16, 20, dtype=torch.bool)
+    mask[:, :4] = False
+    assert ssim(image, image, mask) == pytest.approx(1.0, abs=1e-4)
+    noisy = (image + 0.2 * torch.randn(image.shape, generator=generator)).clamp(0, 1)
+    assert ssim(noisy, image, mask) < 0.9
+    assert ssim(image[0], image[0], mask, window_size=31) == pytest.approx(1.0, abs=1e-4)  # window shrunk to fit
+
+
+def test_bad_inputs_raise():
+    image = torch.rand(4, 5, 3)
+    with pytest.raises(InputError):
+        psnr(image, image[:3], torch.ones(4, 5, dtype=torch.bool))
+    with pytest.raises(InputError):
+        psnr(image, image, torch.zeros(4, 5, dtype=torch.bool))
+    with pytest.raises(InputError):
+        ssim(image, image, torch.ones(4, 5))
+    with pytest.raises(InputError):
+        angular_error_deg(torch.zeros(3, 2), torch.zeros(3, 2))
+    with pytest.raises(InputError):
+        normal_metrics(torch.zeros(2, 3), torch.zeros(2, 3), torch.ones(3, dtype=torch.bool))

@@ -1,0 +1,174 @@
+"""Analytic multiplexed photometric stereo: shapes, input checks, accuracy on an analytic sphere,
+the per-pixel reference, gradients."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from capture_sim.errors import InputError
+from capture_sim.rig import Falloff, panel_positions
+from reconstruct.metrics import angular_error_deg, normal_metrics
+from reconstruct.photometric_stereo import FLAG_NAMES, PSConfig, PSResult, solve_ps, solve_ps_image
+from reconstruct.pixel_solve import CONDITION_CAP
+from reconstruct.reference import ps_reference
+from tests.reconstruct_scenes import capture, emission_of, load_patterns, pattern_names, sphere_scene
+
+# Accuracy limits (degrees) on the noise-free sphere, and the fast-vs-reference limit.
+LIMIT_NAMED_SETS_DEG = 0.5
+LIMIT_EVERY_SET_DEG = 1.0
+REFERENCE_ATOL = 1e-6
+# Tight convergence so that finite differences of the solver are accurate to ~1e-9; the gradient
+# formula (implicit differentiation) is the same in every configuration.
+GRADCHECK_CONFIG = PSConfig(tolerance_deg=1e-10, max_alternations=1000, condition_threshold=CONDITION_CAP)
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return sphere_scene()
+
+
+def _sphere_captures(scene, name):
+    return capture(scene, emission_of(scene, load_patterns(name)))
+
+
+def _flat(scene, captures):
+    index = torch.nonzero(scene.mask.reshape(-1)).squeeze(1)
+    return captures.reshape(captures.shape[0], -1, 3)[:, index], scene.points.reshape(-1, 3)[index], scene.normal.reshape(-1, 3)[index]
+
+
+def test_image_solve_shapes_and_types(sphere):
+    captures, emission = _sphere_captures(sphere, "initial_mono_gradient")
+    result = solve_ps_image(captures, emission, sphere.points, sphere.mask, sphere.lights, Falloff())
+    height, width = sphere.mask.shape
+    assert isinstance(result, PSResult)
+    assert result.normal.shape == (height, width, 3) and result.albedo.shape == (height, width, 3)
+    assert result.valid.shape == result.condition.shape == (height, width)
+    assert set(result.flags) == set(FLAG_NAMES) and all(flag.shape == (height, width) for flag in result.flags.values())
+    assert result.valid.dtype == torch.bool and result.normal.dtype == torch.float64
+    outside = ~sphere.mask
+    assert not result.valid[outside].any()
+    assert (result.normal[outside] == torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)).all()
+    assert (result.albedo[outside] == 0).all()
+    unit_length = result.normal[result.valid].norm(dim=-1)
+    torch.testing.assert_close(unit_length, torch.ones_like(unit_length))
+    view = -sphere.points / sphere.points.norm(dim=-1, keepdim=True)
+    assert ((result.normal * view).sum(-1)[result.valid] > 0).all(), "valid normals face the camera"
+    assert (result.albedo >= 0).all()
+
+
+def test_flat_and_image_solves_agree_and_chunk_size_does_not_matter(sphere):
+    captures, emission = _sphere_captures(sphere, "initial_tri_complementary")
+    flat_captures, points, _ = _flat(sphere, captures)
+    flat = solve_ps(flat_captures, emission, points, sphere.lights, Falloff(), chunk_size=37)
+    image = solve_ps_image(captures, emission, sphere.points, sphere.mask, sphere.lights, Falloff())
+    torch.testing.assert_close(flat.normal, image.normal[sphere.mask])
+    torch.testing.assert_close(flat.albedo, image.albedo[sphere.mask])
+    assert torch.equal(flat.valid, image.valid[sphere.mask])
+
+
+@pytest.mark.parametrize("name", ["initial_mono_gradient", "initial_tri_complementary"])
+def test_named_sets_recover_sphere_normals_and_albedo(sphere, name):
+    captures, emission = _sphere_captures(sphere, name)
+    result = solve_ps_image(captures, emission, sphere.points, sphere.mask, sphere.lights, Falloff())
+    assert result.valid[sphere.mask].float().mean() > 0.99
+    metrics = normal_metrics(result.normal, sphere.normal, sphere.mask)
+    assert metrics["mae"] < LIMIT_NAMED_SETS_DEG, metrics
+    good = result.valid & (angular_error_deg(result.normal, sphere.normal) < 0.01)
+    torch.testing.assert_close(result.albedo[good], sphere.albedo[good], rtol=1e-3, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", pattern_names())
+def test_every_reference_pattern_set_is_solved_to_within_a_degree(sphere, name):
+    # No pixel is replaced by the invalid default here: the test measures the solver itself, also
+    # on sets the default configuration flags as ill-conditioned (e.g. initial_gray_noise).
+    captures, emission = _sphere_captures(sphere, name)
+    assert captures.max() < 1.0
+    config = PSConfig(condition_threshold=CONDITION_CAP)
+    result = solve_ps_image(captures, emission, sphere.points, sphere.mask, sphere.lights, Falloff(), config)
+    metrics = normal_metrics(result.normal, sphere.normal, sphere.mask)
+    assert metrics["mae"] < LIMIT_EVERY_SET_DEG, (name, metrics)
+
+
+def test_float32_matches_float64(sphere):
+    captures, emission = _sphere_captures(sphere, "initial_mono_gradient")
+    result = solve_ps_image(captures.float(), emission.float(), sphere.points.float(), sphere.mask, sphere.lights.float(), Falloff())
+    assert result.normal.dtype == torch.float32
+    assert normal_metrics(result.normal.double(), sphere.normal, sphere.mask)["mae"] < 0.05
+
+
+@pytest.mark.parametrize("name", ["initial_mono_gradient", "initial_tri_complementary", "optimized_tri_random_4"])
+def test_fast_path_matches_per_pixel_reference(sphere, name):
+    captures, emission = _sphere_captures(sphere, name)
+    flat_captures, points, _ = _flat(sphere, captures)
+    pick = torch.randperm(points.shape[0], generator=torch.Generator().manual_seed(3))[:20]
+    config = PSConfig(tolerance_deg=1e-9, max_alternations=500, restart_condition=math.inf, condition_threshold=CONDITION_CAP)
+    fast = solve_ps(flat_captures[:, pick], emission, points[pick], sphere.lights, Falloff(), config)
+    normals, albedo = ps_reference(flat_captures[:, pick].numpy(), emission.numpy(), points[pick].numpy(), sphere.lights.numpy(), lambda d: 1.0 / d**2)
+    np.testing.assert_allclose(fast.normal.numpy(), normals, atol=REFERENCE_ATOL)
+    np.testing.assert_allclose(fast.albedo.numpy(), albedo, atol=REFERENCE_ATOL)
+
+
+def _tiny_problem():
+    """6 points on a small sphere, 2 x 3 superpixels (K = 6), 3 random colour patterns."""
+    generator = torch.Generator().manual_seed(0)
+    lights = torch.as_tensor(panel_positions(2, 3, diagonal_inch=40.0).reshape(-1, 3))
+    normal = torch.nn.functional.normalize(
+        torch.tensor([[0.1, 0.2, -1], [0.3, -0.1, -1], [-0.2, 0.1, -1], [0, 0, -1], [0.4, 0.3, -1], [-0.3, -0.3, -1]], dtype=torch.float64), dim=1
+    )
+    points = torch.tensor([0.0, 0.0, 0.5], dtype=torch.float64) + 0.05 * normal
+    offset = lights[None] - points[:, None]
+    distance = offset.norm(dim=-1)
+    shading = ((offset / distance[..., None]) * normal[:, None]).sum(-1).clamp_min(0) / distance**2
+    olat = (torch.tensor([0.5, 0.4, 0.3], dtype=torch.float64) * shading[..., None]).permute(1, 0, 2)  # (K, N, 3)
+    emission = torch.rand(3, 6, 3, dtype=torch.float64, generator=generator) * 0.1 + 0.01
+    captures = torch.einsum("mkc,knc->mnc", emission, olat)
+    scale = 0.8 / captures.max()
+    return captures * scale, emission * scale, points, lights, normal
+
+
+def test_gradcheck_wrt_emission_and_captures():
+    captures, emission, points, lights, normal = _tiny_problem()
+    result = solve_ps(captures, emission, points, lights, Falloff(), GRADCHECK_CONFIG)
+    assert result.valid.all() and (result.normal - normal).abs().max() < 1e-6
+
+    def solve(emission_, captures_):
+        solved = solve_ps(captures_, emission_, points, lights, Falloff(), GRADCHECK_CONFIG)
+        return solved.normal, solved.albedo
+
+    inputs = (emission.clone().requires_grad_(True), captures.clone().requires_grad_(True))
+    assert torch.autograd.gradcheck(solve, inputs, eps=1e-6, atol=1e-5, rtol=1e-3, fast_mode=True)
+
+
+def test_values_do_not_depend_on_gradient_tracking(sphere):
+    captures, emission = _sphere_captures(sphere, "initial_tri_complementary")
+    flat_captures, points, _ = _flat(sphere, captures)
+    plain = solve_ps(flat_captures, emission, points, sphere.lights, Falloff())
+    tracked = solve_ps(flat_captures.clone().requires_grad_(True), emission.clone().requires_grad_(True), points, sphere.lights, Falloff())
+    # Converged pixels take one more Newton step with gradients: within the tolerance.
+    assert angular_error_deg(tracked.normal.detach(), plain.normal).max() < 10 * PSConfig().tolerance_deg
+
+
+def test_bad_inputs_raise():
+    captures, emission, points, lights, _ = _tiny_problem()
+    falloff = Falloff()
+    with pytest.raises(InputError):
+        solve_ps(captures[:, :, :2], emission, points, lights, falloff)
+    with pytest.raises(InputError):
+        solve_ps(captures[:2], emission, points, lights, falloff)
+    with pytest.raises(InputError):
+        solve_ps(captures, emission[:, :5], points, lights, falloff)
+    with pytest.raises(InputError):
+        solve_ps(captures, -emission, points, lights, falloff)
+    with pytest.raises(InputError):
+        solve_ps(captures, emission, points[:5], lights, falloff)
+    nan_captures = captures.clone()
+    nan_captures[0, 0, 0] = float("nan")
+    with pytest.raises(InputError):
+        solve_ps(nan_captures, emission, points, lights, falloff)
+    with pytest.raises(InputError):
+        solve_ps(captures, emission, points, lights, falloff, config=PSConfig(damping=0.0))
+    with pytest.raises(InputError):
+        solve_ps(captures, emission, points, lights, Falloff("fitted", a=-5.458, b=14.7449))  # negative at 0.5 m
+    with pytest.raises(InputError):
+        solve_ps_image(captures[:, :, None], emission, points[:, None], torch.ones(6, 1), lights, falloff)  # float mask

@@ -1,0 +1,143 @@
+"""Degenerate inputs: outputs and gradients stay finite, and the affected pixels are flagged."""
+import math
+
+import pytest
+import torch
+
+from capture_sim.rig import Falloff
+from reconstruct.photometric_stereo import FLAG_NAMES, solve_ps
+from reconstruct.woodham import solve_woodham, solve_woodham_olat
+from tests.reconstruct_scenes import emission_of, load_patterns, sphere_scene
+
+DEFAULT_NOISE = dict(shot=1e-4, read_std=5e-4)
+
+
+@pytest.fixture(scope="module")
+def problem():
+    """Pixels of a small sphere with mono-gradient captures (noise-free, below saturation)."""
+    scene = sphere_scene(16, 20)
+    inside = scene.mask.reshape(-1)
+    points = scene.points.reshape(-1, 3)[inside]
+    olat = scene.olat.reshape(scene.olat.shape[0], -1, 3)[:, inside]
+    emission = emission_of(scene, load_patterns("initial_mono_gradient"))
+    radiance = torch.einsum("mkc,knc->mnc", emission, olat)
+    exposure = 0.9 / float(radiance.max())
+    return dict(scene=scene, points=points, olat=olat, captures=radiance * exposure, emission=emission * exposure)
+
+
+def _solve_with_gradients(captures, emission, points, lights):
+    """Solve, backpropagate the sum of all outputs, check that everything is finite."""
+    captures = captures.clone().requires_grad_(True)
+    emission = emission.clone().requires_grad_(True)
+    result = solve_ps(captures, emission, points, lights, Falloff())
+    (result.normal.sum() + result.albedo.sum()).backward()
+    for name, value in (("normal", result.normal), ("albedo", result.albedo), ("condition", result.condition),
+                        ("d/dcaptures", captures.grad), ("d/demission", emission.grad)):
+        assert torch.isfinite(value).all(), name
+    assert set(result.flags) == set(FLAG_NAMES)
+    assert (result.normal[~result.valid] == torch.tensor([0.0, 0.0, -1.0], dtype=result.normal.dtype)).all()
+    assert (result.albedo[~result.valid] == 0).all()
+    return result
+
+
+def test_clean_problem_is_valid(problem):
+    result = _solve_with_gradients(problem["captures"], problem["emission"], problem["points"], problem["scene"].lights)
+    assert result.valid.all()
+
+
+def test_zero_albedo_pixels(problem):
+    olat = problem["olat"].clone()
+    olat[:, :10] = 0.0
+    captures = torch.einsum("mkc,knc->mnc", problem["emission"], olat)
+    result = _solve_with_gradients(captures, problem["emission"], problem["points"], problem["scene"].lights)
+    assert result.flags["dark"][:10].all() and not result.valid[:10].any()
+    assert result.valid[10:].all()
+
+
+def test_saturated_pixels_drop_their_equations(problem):
+    captures = (problem["captures"] * 3.0).clamp(max=1.0)
+    result = _solve_with_gradients(captures, problem["emission"], problem["points"], problem["scene"].lights)
+    saturated = (captures >= 0.999).any(dim=(0, 2))
+    assert torch.equal(result.flags["saturated"], saturated) and saturated.any()
+    # Pixels with all equations saturated cannot be solved; the rest still can.
+    fully = (captures >= 0.999).all(dim=0).all(dim=-1)
+    assert not result.valid[fully].any()
+
+
+@pytest.mark.parametrize("case", ["single_pattern", "identical_patterns", "all_black"])
+def test_rank_deficient_pattern_sets_are_ill_conditioned(problem, case):
+    captures, emission = problem["captures"], problem["emission"]
+    if case == "single_pattern":
+        captures, emission = captures[:1], emission[:1]
+    elif case == "identical_patterns":
+        captures, emission = captures[[0, 0]], emission[[0, 0]]
+    else:
+        emission = torch.zeros_like(emission)
+        captures = 1e-3 * torch.rand(captures.shape, generator=torch.Generator().manual_seed(0), dtype=captures.dtype)
+    result = _solve_with_gradients(captures, emission, problem["points"], problem["scene"].lights)
+    assert result.flags["ill_conditioned"].all() and not result.valid.any()
+
+
+def test_single_colour_pattern_is_ill_conditioned(problem):
+    # Three colour channels of one pattern: three equations for five unknowns.
+    patterns = load_patterns("initial_tri_complementary")[:1]
+    emission = emission_of(problem["scene"], patterns)
+    captures = torch.einsum("mkc,knc->mnc", emission, problem["olat"])
+    result = _solve_with_gradients(captures / captures.max() * 0.9, emission / captures.max() * 0.9, problem["points"], problem["scene"].lights)
+    assert result.flags["ill_conditioned"].all()
+
+
+def test_grazing_normals():
+    scene = sphere_scene(16, 20)
+    tilt = math.radians(88.0)
+    normal = torch.tensor([math.sin(tilt), 0.0, -math.cos(tilt)], dtype=torch.float64)
+    rays = scene.points / scene.points[..., 2:]
+    # Intersect the pixel rays with a plane through (0, 0, 0.5) with the grazing normal.
+    depth = (0.5 * normal[2]) / (rays @ normal)
+    points = (depth[..., None] * rays).reshape(-1, 3)
+    keep = (points[:, 2] > 0.3) & (points[:, 2] < 0.8)
+    points = points[keep]
+    offset = scene.lights[:, None] - points[None]
+    distance = offset.norm(dim=-1)
+    shading = ((offset / distance[..., None]) @ normal).clamp_min(0) / distance**2 * 0.2
+    emission = emission_of(scene, load_patterns("initial_mono_gradient"))
+    captures = torch.einsum("mkc,kn->mnc", emission, shading)
+    scale = 0.9 / float(captures.max())
+    result = _solve_with_gradients(captures * scale, emission * scale, points, scene.lights)
+    view = -points / points.norm(dim=-1, keepdim=True)
+    assert ((result.normal * view).sum(-1)[result.valid] > 0).all()
+
+
+def test_ten_times_the_default_noise(problem):
+    generator = torch.Generator().manual_seed(1)
+    captures = problem["captures"]
+    shot, read = DEFAULT_NOISE["shot"] * 10, DEFAULT_NOISE["read_std"] * math.sqrt(10)
+    noisy = captures + torch.sqrt(shot * captures + read**2) * torch.randn(captures.shape, generator=generator, dtype=captures.dtype)
+    result = _solve_with_gradients(noisy.clamp(0.0, 1.0), problem["emission"], problem["points"], problem["scene"].lights)
+    assert result.valid.float().mean() > 0.8
+
+
+def test_points_behind_the_display_or_on_a_light(problem):
+    lights = problem["scene"].lights
+    points = problem["points"].clone()
+    points[:4, 2] = -0.1  # behind the camera and the display
+    points[4, 2] = 0.0
+    points[5] = lights[70]  # exactly on a superpixel
+    points[6] = lights[3] + torch.tensor([0.0, 0.0, 1e-5], dtype=points.dtype)
+    result = _solve_with_gradients(problem["captures"], problem["emission"], points, lights)
+    assert result.flags["bad_geometry"][:7].all() and not result.valid[:7].any()
+    assert not result.flags["bad_geometry"][7:].any()
+
+
+def test_woodham_degenerate_inputs_stay_finite(problem):
+    lights, points = problem["scene"].lights, problem["points"].clone()
+    points[0] = lights[10]
+    olat = problem["olat"].clone()
+    olat[:, 1:4] = 0.0
+    olat[:, 4] = 5.0
+    result = solve_woodham_olat(olat, points, lights, Falloff())
+    assert all(torch.isfinite(value).all() for value in (result.normal, result.albedo, result.condition))
+    assert result.flags["bad_geometry"][0] and result.flags["dark"][1:4].all() and result.flags["saturated"][4]
+    assert not result.valid[:5].any()
+    black = solve_woodham(problem["captures"][:3], torch.zeros_like(problem["emission"][:3]), points, lights, Falloff())
+    assert torch.isfinite(black.normal).all() and not black.valid.any()

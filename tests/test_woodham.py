@@ -1,0 +1,92 @@
+"""Woodham least squares: OLAT and multiplexed paths on an analytic sphere, the per-pixel
+reference, input checks."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from capture_sim.errors import InputError
+from capture_sim.rig import Falloff
+from reconstruct.metrics import normal_metrics
+from reconstruct.photometric_stereo import FLAG_NAMES
+from reconstruct.reference import woodham_olat_reference
+from reconstruct.woodham import WoodhamConfig, solve_woodham, solve_woodham_image, solve_woodham_olat
+from tests.reconstruct_scenes import capture, emission_of, load_patterns, sphere_scene
+
+LIMIT_OLAT_DEG = 0.1
+LIMIT_PATTERNS_DEG = 0.5
+REFERENCE_ATOL = 1e-6
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return sphere_scene()
+
+
+def _identity_emission(num_lights, dtype=torch.float64):
+    return torch.eye(num_lights, dtype=dtype)[:, :, None].expand(num_lights, num_lights, 3)
+
+
+def test_olat_stack_recovers_normals_and_albedo(sphere):
+    result = solve_woodham_image(sphere.olat, _identity_emission(144), sphere.points, sphere.mask, sphere.lights, Falloff())
+    assert result.normal.shape == (*sphere.mask.shape, 3) and set(result.flags) == set(FLAG_NAMES)
+    assert result.valid[sphere.mask].all() and not result.valid[~sphere.mask].any()
+    assert normal_metrics(result.normal, sphere.normal, sphere.mask)["mae"] < LIMIT_OLAT_DEG
+    torch.testing.assert_close(result.albedo[sphere.mask], sphere.albedo[sphere.mask], rtol=1e-4, atol=1e-8)
+
+
+def test_olat_entry_point_matches_identity_emission(sphere):
+    index = torch.nonzero(sphere.mask.reshape(-1)).squeeze(1)
+    olat = sphere.olat.reshape(144, -1, 3)[:, index]
+    points = sphere.points.reshape(-1, 3)[index]
+    exposure = 0.7
+    by_exposure = solve_woodham_olat(olat * exposure, points, sphere.lights, Falloff(), exposure)
+    by_emission = solve_woodham(olat, _identity_emission(144), points, sphere.lights, Falloff())
+    torch.testing.assert_close(by_exposure.normal, by_emission.normal)
+    torch.testing.assert_close(by_exposure.albedo, by_emission.albedo)
+
+
+def test_float16_olat_stack_is_read_blockwise(sphere):
+    index = torch.nonzero(sphere.mask.reshape(-1)).squeeze(1)
+    exposure = 0.9 / float(sphere.olat.max())
+    olat = (sphere.olat.reshape(144, -1, 3)[:, index] * exposure).half()
+    points = sphere.points.reshape(-1, 3)[index]
+    result = solve_woodham_olat(olat, points, sphere.lights, Falloff(), exposure=exposure, chunk_size=100)
+    assert result.normal.dtype == torch.float32
+    assert normal_metrics(result.normal.double(), sphere.normal.reshape(-1, 3)[index], torch.ones(len(index), dtype=torch.bool))["mae"] < 0.5
+
+
+@pytest.mark.parametrize("name", ["initial_mono_gradient", "initial_mono_complementary", "initial_tri_random_6"])
+def test_multiplexed_patterns(sphere, name):
+    captures, emission = capture(sphere, emission_of(sphere, load_patterns(name)))
+    result = solve_woodham_image(captures, emission, sphere.points, sphere.mask, sphere.lights, Falloff())
+    assert normal_metrics(result.normal, sphere.normal, sphere.mask)["mae"] < LIMIT_PATTERNS_DEG
+
+
+def test_matches_per_pixel_reference(sphere):
+    index = torch.nonzero(sphere.mask.reshape(-1)).squeeze(1)
+    pick = index[torch.randperm(index.numel(), generator=torch.Generator().manual_seed(1))[:20]]
+    olat = sphere.olat.reshape(144, -1, 3)[:, pick] * 3.0
+    olat[5:9, :4] = 1.0  # a few saturated captures are dropped by both
+    points = sphere.points.reshape(-1, 3)[pick]
+    config = WoodhamConfig(restart_condition=math.inf)
+    fast = solve_woodham_olat(olat, points, sphere.lights, Falloff(), exposure=3.0, config=config)
+    normals, albedo = woodham_olat_reference(olat.numpy(), np.full((144, 3), 3.0), points.numpy(), sphere.lights.numpy(), lambda d: 1.0 / d**2)
+    np.testing.assert_allclose(fast.normal.numpy(), normals, atol=REFERENCE_ATOL)
+    np.testing.assert_allclose(fast.albedo.numpy(), albedo, atol=REFERENCE_ATOL)
+    assert fast.flags["saturated"][:4].all()
+
+
+def test_bad_inputs_raise(sphere):
+    index = torch.nonzero(sphere.mask.reshape(-1)).squeeze(1)[:5]
+    olat = sphere.olat.reshape(144, -1, 3)[:, index]
+    points = sphere.points.reshape(-1, 3)[index]
+    with pytest.raises(InputError):
+        solve_woodham(olat[:2], _identity_emission(144)[:2], points, sphere.lights, Falloff())  # fewer than 3
+    with pytest.raises(InputError):
+        solve_woodham_olat(olat[:100], points, sphere.lights, Falloff())
+    with pytest.raises(InputError):
+        solve_woodham_olat(olat, points, sphere.lights, Falloff(), exposure=0.0)
+    with pytest.raises(InputError):
+        solve_woodham_olat(olat, points, sphere.lights, Falloff(), config=WoodhamConfig(shadow_threshold=1.5))
