@@ -102,6 +102,18 @@ def build_parser() -> argparse.ArgumentParser:
     import_frames.add_argument("--out", type=Path, required=True)
     import_frames.set_defaults(handler=_import_frames)
 
+    invrender = commands.add_parser("invrender", help="baseline inverse renderer: normals, basis BRDFs, relighting")
+    invrender.add_argument("--scene", type=Path, required=True)
+    invrender.add_argument("--patterns", default="olat", help="pattern file, or 'olat' (fit on 5/6 of the OLAT images)")
+    invrender.add_argument("--basis", default="auto", help="number of basis BRDFs J, or 'auto' (model selection)")
+    invrender.add_argument("--iterations", type=int, default=None)
+    invrender.add_argument("--noise", choices=NOISE_CHOICES, default="default")
+    invrender.add_argument("--seed", type=int, default=0)
+    invrender.add_argument("--rig", default=DEFAULT_RIG)
+    invrender.add_argument("--json", type=Path, default=None)
+    invrender.add_argument("--out", type=Path, default=None)
+    invrender.set_defaults(handler=_invrender)
+
     demo = commands.add_parser("demo", help="the main job: scenes, learning, comparison, report and charts")
     demo.add_argument("--out", type=Path, default=Path("runs/demo"))
     demo.add_argument("--steps", type=int, default=None, help="learning steps per pattern set")
@@ -163,6 +175,18 @@ def _import_frames(args) -> None:
     print(f"recovered {len(values)} patterns from {args.frames} into {args.out}")
 
 
+def _invrender(args) -> None:
+    import json
+
+    from train.invrender_command import InvRenderConfig, run_invrender
+
+    changes = dict(scene=args.scene, patterns=args.patterns, basis=args.basis, noise=args.noise, seed=args.seed, rig=args.rig, json=args.json, out=args.out)
+    if args.iterations is not None:
+        changes["iterations"] = args.iterations
+    document = run_invrender(InvRenderConfig(**changes))
+    print(json.dumps({key: document[key] for key in ("mae", "psnr", "ssim", "seconds", "J") if key in document}, indent=2))
+
+
 def _demo(args) -> None:
     from train.demo import DemoConfig, run_demo
 
@@ -211,7 +235,11 @@ def _patterns_list(args) -> None:
     from patterns.families import FAMILIES
 
     for name, family in FAMILIES.items():
-        print(name)
+        if not family.supports(args.num_patterns):
+            print(f"{name:<20} (not defined for M={args.num_patterns}) {family.summary}")
+            continue
+        names = ", ".join(parameter.name for parameter in family.parameters(args.num_patterns))
+        print(f"{name:<20} {family.summary}\n{'':<20} parameters at M={args.num_patterns}: {names[:160]}{'...' if len(names) > 160 else ''}")
 
 
 def run(argv: list[str] | None = None) -> int:
