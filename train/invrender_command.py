@@ -1,0 +1,612 @@
+"""`displex invrender`: inverse rendering of one scene, relighting evaluation, model selection, outputs.
+
+Data (all from the scene's OLAT stack O, DESIGN sections 3 and 4):
+- lights are split 5:1 into fit and held-out test lights (``reconstruct.relight.split_lights``);
+- OLAT exposure e_olat is auto exposure over all K noise-free OLAT images of the mask; the
+  held-out truth is e_olat * O[test] (noise-free), and relit images use the same e_olat;
+- ``patterns = "olat"``: the fit captures are the fit lights' OLAT images, noisy (rig model)
+  unless ``noise = "off"``, with one-hot emission e_olat;
+- a pattern file: the fit captures are simulated captures of the patterns (``simulate``, backlight
+  and gamma included, exposure auto unless fixed, noise as above).
+Model selection (``basis = "auto"``) validates on noisy OLAT images of every 5th fit light; in
+OLAT mode its candidates are fitted on the other fit lights, in pattern mode on the pattern
+captures (at a rig, the validation images are a few extra OLAT captures). The test lights are
+never used for any decision.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import shutil
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from capture_sim.atomic import save_npy, write_json
+from capture_sim.errors import InputError
+from capture_sim.geometry import pixel_rays
+from capture_sim.rig import DEFAULT_RIG, load_rig
+from capture_sim.scene import load_scene, rig_for_scene
+from capture_sim.simulator import auto_exposure, sensor, simulate
+from patterns.io import check_patterns_match_rig, load_patterns
+from patterns.png import write_png
+from reconstruct.metrics import angular_error_deg, normal_metrics
+from reconstruct.inverse_render import FitConfig, InverseRenderResult, fit_inverse_render, initial_estimate, render_under_patterns
+from reconstruct.model_selection import SelectionConfig, choose_light_model, light_spread, select_basis
+from reconstruct.relight import olat_emission, relighting_metrics, split_lights
+from train.figures import for_display, image_grid, normal_to_rgb, save_figure
+from train.scene_pixels import scene_pixels
+from train.simulate_command import parse_exposure, resolve_exposure
+
+GEOMETRY_CHOICES = ("auto", "near", "far")
+NOISE_CHOICES = ("default", "off")
+MAX_BASIS = 8
+
+
+@dataclass(frozen=True)
+class InvRenderConfig:
+    """What `displex invrender` does (the CLI maps its flags onto these fields)."""
+
+    scene: Path
+    """Scene interchange .npz (DESIGN section 7) with an OLAT stack."""
+    patterns: str = "olat"
+    """'olat' (fit the fit-split OLAT images directly) or a pattern file (.npz / .npy)."""
+    out: Path | None = None
+    """Output folder for arrays, figures, TensorBoard logs and JSON; None writes nothing there."""
+    json: Path | None = None
+    """Also write the result JSON here."""
+    basis: str = "auto"
+    """'auto' (model selection, ``reconstruct.model_selection``) or J = 1..8 (specular bases)."""
+    iterations: int = 400
+    """Adam steps of the final fit."""
+    seed: int = 0
+    """Seed of the capture noise, k-means and pixel batches."""
+    noise: str = "default"
+    """'default': the rig's noise model and bit depth on every capture; 'off': noise-free."""
+    exposure: str = "auto"
+    """Exposure of pattern captures: 'auto' or a positive number (OLAT captures always use auto)."""
+    geometry: str = "auto"
+    """'near', 'far' or 'auto' (far field only where it is indistinguishable, ``choose_light_model``)."""
+    rig: str = DEFAULT_RIG
+    """Rig preset or TOML path: display model, noise and falloff (lights come from the scene)."""
+    batch_pixels: int = 8192
+    """Pixels per Adam step."""
+    tv_weight: float = 1e-3
+    """Weight of the normals' total variation (see ``FitConfig.tv_weight``)."""
+    selection: SelectionConfig = field(default_factory=SelectionConfig)
+    """Model-selection sweep settings (used when ``basis = 'auto'``)."""
+
+    def num_basis(self) -> int | None:
+        """J as an int, or None for 'auto'; raises ``InputError`` for anything else."""
+        if str(self.basis) == "auto":
+            return None
+        try:
+            value = int(str(self.basis))
+        except ValueError:
+            raise InputError(f"--basis must be 'auto' or an integer 1..{MAX_BASIS}, got {self.basis!r}") from None
+        if not 1 <= value <= MAX_BASIS:
+            raise InputError(f"--basis must be 'auto' or an integer 1..{MAX_BASIS}, got {self.basis!r}")
+        return value
+
+    def validate(self) -> None:
+        """Raise ``InputError`` with one line for a bad setting."""
+        self.num_basis()
+        if self.iterations < 1:
+            raise InputError(f"--iterations must be at least 1, got {self.iterations}")
+        if self.noise not in NOISE_CHOICES:
+            raise InputError(f"noise must be one of {', '.join(NOISE_CHOICES)}, got {self.noise!r}")
+        if self.geometry not in GEOMETRY_CHOICES:
+            raise InputError(f"geometry must be one of {', '.join(GEOMETRY_CHOICES)}, got {self.geometry!r}")
+        if self.batch_pixels < 1 or self.tv_weight < 0:
+            raise InputError("batch_pixels must be positive and tv_weight non-negative")
+        if self.seed < 0:
+            raise InputError(f"--seed must be non-negative, got {self.seed}")
+        parse_exposure(str(self.exposure))
+
+    def to_dict(self) -> dict:
+        values = asdict(self)
+        for key in ("scene", "out", "json"):
+            values[key] = None if values[key] is None else str(values[key])
+        return values
+
+
+def normal_error_stats(estimate: torch.Tensor, truth: torch.Tensor) -> dict:
+    """``reconstruct.metrics.normal_metrics`` of (N, 3) normals over all N pixels (degrees, fractions)."""
+    return normal_metrics(estimate, truth, torch.ones(estimate.shape[0], dtype=torch.bool))
+
+
+@dataclass(frozen=True, eq=False)
+class _Data:
+    """Captures to fit, OLAT captures for validation, and the held-out truth of one scene."""
+
+    captures: torch.Tensor  # (M, N, 3) fit captures
+    emission: torch.Tensor  # (M, K, 3)
+    exposure: float  # exposure of the fit captures
+    olat_exposure: float
+    olat_captures: torch.Tensor  # (K_fit, N, 3) noisy OLAT captures of the fit lights
+    test_truth: torch.Tensor  # (K_test, N, 3) noise-free e_olat * O[test]
+    describe: dict
+
+
+def _prepare_data(config: InvRenderConfig, scene, rig, pixels, split) -> _Data:
+    """Exposures, noisy OLAT captures, the fit captures (OLAT or simulated patterns) and test truth."""
+    olat = pixels.transport.matrix.permute(1, 2, 0)  # (K, N, 3) noise-free radiance
+    olat_exposure = auto_exposure(olat)
+    noise_free = config.noise == "off"
+    noise_model = None if noise_free else rig.noise
+    bits = None if noise_free else rig.bit_depth
+    generator = torch.Generator().manual_seed(config.seed)
+    with torch.no_grad():
+        olat_captures = sensor(olat_exposure * olat[split.fit], noise_model, bits, generator)
+        test_truth = olat_exposure * olat[split.test]
+        if config.patterns == "olat":
+            captures = olat_captures
+            emission = olat_emission(split.fit, pixels.transport.num_lights, olat_exposure)
+            exposure = olat_exposure
+            describe = {"patterns": "olat", "M": int(split.fit.numel()), "pattern_meta": {}}
+        else:
+            values, pattern_meta = load_patterns(config.patterns)
+            check_patterns_match_rig(values, rig.rows, rig.cols)
+            pattern_set = torch.as_tensor(values, dtype=torch.float32)
+            exposure = resolve_exposure(parse_exposure(str(config.exposure)), pattern_set, scene, rig)
+            capture = simulate(pattern_set, pixels.transport, rig, exposure=exposure, noise=noise_model, bit_depth=bits, generator=generator)
+            captures, emission, exposure = capture.captures, capture.emission, capture.exposure
+            describe = {"patterns": str(config.patterns), "M": int(values.shape[0]), "pattern_meta": pattern_meta}
+    describe.update({
+        "exposure": exposure,
+        "exposure_mode": "auto" if config.patterns == "olat" or config.exposure == "auto" else "fixed",
+        "olat_exposure": olat_exposure,
+        "noise": None if noise_free else {"shot": rig.noise.shot, "read_std": rig.noise.read_std, "bit_depth": rig.bit_depth},
+        "saturated_fraction": float((captures >= 1.0).double().mean()),
+    })
+    return _Data(captures, emission, exposure, olat_exposure, olat_captures, test_truth, describe)
+
+
+class _TensorBoard:
+    """A SummaryWriter writing into a temporary folder that replaces ``out/tensorboard`` on close."""
+
+    def __init__(self, out: Path | None):
+        self.writer, self.final, self.staging = None, None, None
+        if out is None:
+            return
+        from torch.utils.tensorboard import SummaryWriter
+
+        out.mkdir(parents=True, exist_ok=True)
+        self.final = out / "tensorboard"
+        self.staging = Path(tempfile.mkdtemp(prefix=".tensorboard.", dir=out))
+        self.writer = SummaryWriter(log_dir=str(self.staging))
+
+    def scalars(self, prefix: str, step: int, values: dict) -> None:
+        if self.writer is not None:
+            for key, value in values.items():
+                self.writer.add_scalar(f"{prefix}/{key}", value, step)
+
+    def close(self) -> None:
+        if self.writer is None:
+            return
+        self.writer.close()
+        if self.final.exists():
+            shutil.rmtree(self.final)
+        self.staging.rename(self.final)  # one rename: readers never see a half-written run
+
+
+def run_invrender(config: InvRenderConfig) -> dict:
+    """Fit the scene, evaluate relighting on held-out lights, write the outputs; return the result.
+
+    Returns:
+        JSON-ready dict with ``mae`` (deg, None without ground-truth normals), ``psnr`` (dB),
+        ``ssim``, ``seconds`` (wall time of data preparation, fits and evaluation), ``J`` and the
+        details: ``specular``, ``light_model``, ``model_selection`` (curve and rule, for 'auto'),
+        ``normal_error``, ``relighting``, ``basis_brdfs``, ``timings``, ``data`` and ``config``.
+    """
+    config.validate()
+    start = time.perf_counter()
+    timings: dict[str, float] = {}
+    scene = load_scene(config.scene)
+    rig = rig_for_scene(load_rig(config.rig), scene)
+    pixels = scene_pixels(scene, rig)
+    split = split_lights(pixels.transport.num_lights)
+    num_lights = pixels.transport.num_lights
+    pixel_index, height, width = pixels.transport.pixel_index, scene.height, scene.width
+    points, lights, falloff = pixels.points.float(), pixels.lights().float(), rig.falloff
+    data = _prepare_data(config, scene, rig, pixels, split)
+    timings["data"] = time.perf_counter() - start
+    grid = {"pixel_index": pixel_index, "height": height, "width": width}
+    board = _TensorBoard(None if config.out is None else Path(config.out))
+
+    # ---- starting point: analytic photometric stereo on the fit captures
+    tick = time.perf_counter()
+    initial = initial_estimate(data.captures, data.emission, points, lights, falloff, **grid)
+    timings["initial_estimate"] = time.perf_counter() - tick
+
+    # ---- light model: near field unless far field is indistinguishable
+    tick = time.perf_counter()
+    if config.geometry == "auto":
+        light_model = choose_light_model(initial, data.emission, points, lights, falloff, config.selection)
+        light_model["mode"] = "auto"
+    else:
+        light_model = {"far_field": config.geometry == "far", "mode": "forced", **light_spread(points, lights, falloff)}
+    far_field = bool(light_model["far_field"])
+    timings["light_model"] = time.perf_counter() - tick
+    template = FitConfig(far_field=far_field, seed=config.seed, batch_pixels=config.batch_pixels, tv_weight=config.tv_weight)
+
+    # ---- basis: a given J (specular), or model selection on validation lights
+    tick = time.perf_counter()
+    selection = None
+    num_basis = config.num_basis()
+    specular = True
+    if num_basis is None:
+        selection = _select(config, data, split, initial, template, points, lights, falloff, grid, board)
+        num_basis, specular = selection.chosen.num_basis, selection.chosen.specular
+    timings["model_selection"] = time.perf_counter() - tick
+
+    # ---- final fit on all fit captures
+    tick = time.perf_counter()
+    fit_config = dataclasses.replace(template, num_basis=num_basis, specular=specular, iterations=config.iterations)
+    result = fit_inverse_render(data.captures, data.emission, points, lights, falloff, pixel_index, height, width,
+                                fit_config, initial, log=lambda step, values: board.scalars("fit", step, values))
+    timings["fit"] = time.perf_counter() - tick
+
+    # ---- evaluation: held-out relighting and normals
+    tick = time.perf_counter()
+    relit = result.render(points, lights, olat_emission(split.test, num_lights, data.olat_exposure), falloff)
+    relighting = relighting_metrics(relit, data.test_truth, pixel_index, height, width)
+    normal_error = None if pixels.normal is None else normal_error_stats(result.normal, pixels.normal)
+    timings["evaluation"] = time.perf_counter() - tick
+    seconds = time.perf_counter() - start
+    board.scalars("result", 0, {"psnr": relighting["psnr"], "ssim": relighting["ssim"], **({"mae": normal_error["mae"]} if normal_error else {})})
+
+    output = {
+        "scene": scene.name,
+        "mae": None if normal_error is None else normal_error["mae"],
+        "psnr": relighting["psnr"],
+        "ssim": relighting["ssim"],
+        "seconds": seconds,
+        "J": num_basis,
+        "specular": specular,
+        "far_field": far_field,
+        "light_model": light_model,
+        "model_selection": None if selection is None else selection.describe(),
+        "normal_error": normal_error,
+        "relighting": relighting,
+        "basis_brdfs": result.describe(),
+        "pixels": int(pixel_index.numel()),
+        "image": [height, width],
+        "lights": {"fit": int(split.fit.numel()), "test": int(split.test.numel()), "validation": int(split.validation.numel()),
+                   "test_every": 6, "validation_every": 5},
+        "fit": {"iterations": config.iterations, "final_rmse": result.rmse_history[-1] if result.rmse_history else None,
+                "fit_config": _jsonable(asdict(fit_config))},
+        "initial_estimate": {"valid_fraction": float(initial.valid.double().mean()),
+                             **({"normal_error": normal_error_stats(initial.normal, pixels.normal)} if pixels.normal is not None else {})},
+        "data": data.describe,
+        "timings": timings,
+        "threads": torch.get_num_threads(),
+        "config": config.to_dict(),
+    }
+    if config.out is not None:
+        _write_outputs(Path(config.out), output, config, result, relit, data, split, pixels, selection, scene)
+    board.close()
+    if config.json is not None:
+        write_json(config.json, output)
+    return output
+
+
+def _jsonable(values: dict) -> dict:
+    return json.loads(json.dumps(values, default=lambda value: list(value) if isinstance(value, tuple) else str(value)))
+
+
+def _select(config, data: _Data, split, initial, template, points, lights, falloff, grid, board):
+    """Model selection: candidates fitted on the non-validation data, scored on validation OLAT images."""
+    num_lights = lights.shape[0]
+    validation_position = torch.searchsorted(split.fit, split.validation)
+    validation_images = data.olat_captures[validation_position]
+    validation_emission = olat_emission(split.validation, num_lights, data.olat_exposure)
+    if config.patterns == "olat":
+        train_position = torch.searchsorted(split.fit, split.train)
+        captures = data.olat_captures[train_position]
+        emission = olat_emission(split.train, num_lights, data.olat_exposure)
+        start = initial_estimate(captures, emission, points, lights, falloff, **grid)
+    else:
+        captures, emission, start = data.captures, data.emission, initial
+
+    def log(num_basis, specular, candidate):
+        board.scalars(f"selection/{'specular' if specular else 'lambertian'}", num_basis, {"validation_psnr": candidate.psnr})
+
+    return select_basis(captures, emission, points, lights, falloff, grid["pixel_index"], grid["height"], grid["width"],
+                        validation_emission, validation_images, template, config.selection, start, log)
+
+
+# ----------------------------------------------------------------------------------------------
+# Outputs
+# ----------------------------------------------------------------------------------------------
+
+
+def _write_outputs(out: Path, output: dict, config, result: InverseRenderResult, relit, data, split, pixels, selection, scene) -> None:
+    transport = pixels.transport
+    height, width = scene.height, scene.width
+    normal_image = transport.to_image(result.normal).numpy().astype(np.float32)
+    save_npy(out / "normals.npy", normal_image)
+    mask = scene.mask
+    write_png(out / "normals.png", np.round(np.where(mask[..., None], normal_to_rgb(normal_image), 0.0) * 255).astype(np.uint8))
+    _normals_figure(out / "normals_figure.png", normal_image, scene, output)
+    save_npy(out / "weights.npy", transport.to_image(result.weights).numpy().astype(np.float32))
+    weight_maps = transport.to_image(result.weights, fill=math.nan).numpy()
+    fig = image_grid(
+        [weight_maps[..., j] for j in range(result.num_basis)],
+        [f"basis {j}" for j in range(result.num_basis)],
+        f"Basis weights of {scene.name} (J = {result.num_basis})",
+        "Per-pixel weight of each basis BRDF (softmax, sums to 1); outside the mask blank.",
+        cmap="viridis", colorbar_label="weight",
+    )
+    save_figure(fig, out / "weights.png")
+    _brdf_spheres(out / "brdf_spheres.png", result, pixels.rig)
+    _relit_figure(out / "relit.png", relit, data.test_truth, split.test, transport, output)
+    if selection is not None:
+        _selection_chart(out / "model_selection.png", selection, config.selection)
+    write_json(out / "config.json", config.to_dict())
+    write_json(out / "result.json", output)
+
+
+def _normals_figure(path: Path, normal_image: np.ndarray, scene, output: dict) -> None:
+    import matplotlib.pyplot as plt
+
+    mask = scene.mask
+    panels = [("estimate", np.where(mask[..., None], normal_to_rgb(normal_image), 1.0))]
+    error = None
+    if scene.normal is not None:
+        panels.append(("ground truth", np.where(mask[..., None], normal_to_rgb(scene.normal), 1.0)))
+        angle = angular_error_deg(torch.as_tensor(normal_image), torch.as_tensor(scene.normal, dtype=torch.float32)).numpy()
+        error = np.where(mask, angle, np.nan)
+    columns = len(panels) + (error is not None)
+    fig, axes = plt.subplots(1, columns, figsize=(3.4 * columns, 3.4), squeeze=False)
+    for ax, (title, image) in zip(axes[0], panels):
+        ax.imshow(image, interpolation="nearest")
+        ax.set_title(title, fontsize=9)
+        ax.set_axis_off()
+    if error is not None:
+        ax = axes[0, -1]
+        shown = ax.imshow(error, cmap="magma", vmin=0.0, vmax=max(10.0, float(np.nanpercentile(error, 99))), interpolation="nearest")
+        fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.04, label="angular error (deg)")
+        ax.set_title(f"error, MAE {output['mae']:.2f} deg", fontsize=9)
+        ax.set_axis_off()
+    fig.suptitle(f"Normals of {scene.name}")
+    fig.text(0.5, 0.005, "Camera-frame normals as RGB (x right = red, y up = green, towards camera = blue).", ha="center", fontsize=8)
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
+    save_figure(fig, path)
+
+
+def sphere_pixels(size: int = 96, radius: float = 0.05, distance: float = 0.5) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A sphere filling a ``size`` x ``size`` view: (N, 3) points and normals (camera frame) and the (size, size) mask."""
+    focal = 1.1 * size * distance / (2.0 * radius)
+    K_cam = np.array([[focal, 0.0, (size - 1) / 2], [0.0, focal, (size - 1) / 2], [0.0, 0.0, 1.0]])
+    rays = pixel_rays(K_cam, size, size, dtype=torch.float64).reshape(-1, 3)
+    centre = torch.tensor([0.0, 0.0, distance], dtype=torch.float64)
+    # |t r - C|^2 = R^2, nearest root.
+    ray_sq, along = (rays * rays).sum(-1), rays @ centre
+    discriminant = along**2 - ray_sq * (centre @ centre - radius**2)
+    mask = discriminant > 0
+    depth = (along[mask] - discriminant[mask].sqrt()) / ray_sq[mask]
+    points = depth[:, None] * rays[mask]
+    normals = (points - centre) / radius
+    return points.float(), normals.float(), mask.reshape(size, size)
+
+
+def _brdf_spheres(path: Path, result: InverseRenderResult, rig) -> None:
+    """Each basis BRDF on a sphere lit by one superpixel (upper left quadrant of the display)."""
+    points, normals, mask = sphere_pixels()
+    light = rig.lights()[(rig.rows // 4) * rig.cols + rig.cols // 4][None].float()
+    distance = float((light[0] - torch.tensor([0.0, 0.0, 0.5])).norm())
+    # Exposure: a white Lambertian patch facing the light at the sphere's distance reads 0.8.
+    exposure = 0.8 * math.pi / float(rig.falloff(torch.tensor(distance)))
+    emission = torch.full((1, 1, 3), exposure)
+    images = []
+    for j in range(result.num_basis):
+        specular = result.specular[j : j + 1] if result.specular_enabled else None
+        rendered = render_under_patterns(normals, points, light, emission, torch.ones(points.shape[0], 1), result.diffuse[j : j + 1],
+                                         specular, result.roughness[j : j + 1], rig.falloff)
+        image = torch.ones((mask.numel(), 3))
+        image[mask.reshape(-1)] = for_display_tensor(rendered[0])
+        images.append(image.reshape(*mask.shape, 3).numpy())
+    titles = [
+        f"basis {j}: rho_d ({', '.join(f'{v:.2f}' for v in result.diffuse[j].tolist())})\n"
+        + (f"rho_s {float(result.specular[j]):.3f}, r {float(result.roughness[j]):.2f}" if result.specular_enabled else "Lambertian")
+        for j in range(result.num_basis)
+    ]
+    fig = image_grid(images, titles, "Recovered basis BRDFs",
+                     f"Each basis on a sphere lit by superpixel ({rig.rows // 4}, {rig.cols // 4}); exposure {exposure:.3g} "
+                     "(white Lambertian facing the light = 0.8), clipped, display gamma 1/2.2.")
+    save_figure(fig, path)
+
+
+def for_display_tensor(values: torch.Tensor) -> torch.Tensor:
+    """Linear values to display values (clip to [0, 1], gamma 1/2.2), as a tensor."""
+    return torch.as_tensor(for_display(values.detach().numpy()))
+
+
+def _relit_figure(path: Path, relit, truth, test_lights, transport, output: dict, count: int = 4) -> None:
+    """Held-out lights: truth, relit and 10x absolute error, one row per light."""
+    import matplotlib.pyplot as plt
+
+    chosen = np.unique(np.linspace(0, relit.shape[0] - 1, min(count, relit.shape[0])).round().astype(int))
+    fig, axes = plt.subplots(len(chosen), 3, figsize=(9.0, 2.8 * len(chosen) + 0.6), squeeze=False)
+    for row, index in enumerate(chosen):
+        true_image = transport.to_image(truth[index].clamp(0, 1)).numpy()
+        relit_image = transport.to_image(relit[index].clamp(0, 1)).numpy()
+        error = np.abs(relit_image - true_image).mean(-1) * 10.0
+        light = int(test_lights[index])
+        for ax, image, title in ((axes[row, 0], for_display(true_image), f"truth, light {light}"),
+                                 (axes[row, 1], for_display(relit_image), f"relit, light {light}"),
+                                 (axes[row, 2], np.clip(error, 0, 1), "|relit - truth| x 10")):
+            ax.imshow(image, cmap="magma" if image.ndim == 2 else None, vmin=0, vmax=1, interpolation="nearest")
+            ax.set_title(title, fontsize=9)
+            ax.set_axis_off()
+    fig.suptitle(f"Held-out relighting: PSNR {output['psnr']:.2f} dB, SSIM {output['ssim']:.4f}")
+    fig.text(0.5, 0.005, "Every 6th superpixel held out; exposed OLAT images (auto exposure), display gamma 1/2.2; error is the "
+             "channel-mean absolute difference times 10 (1 = 0.1 of full scale).", ha="center", fontsize=8, wrap=True)
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    save_figure(fig, path)
+
+
+def _selection_chart(path: Path, selection, selection_config: SelectionConfig) -> None:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for specular, colour, label in ((False, "tab:blue", "Lambertian bases"), (True, "tab:orange", "GGX specular bases")):
+        points = sorted((c.num_basis, c.psnr) for c in selection.curve if c.specular == specular)
+        ax.plot([p[0] for p in points], [p[1] for p in points], marker="o", color=colour, label=label)
+    best = selection.best.psnr
+    ax.axhspan(best - selection_config.tolerance_db, best, color="0.85", label=f"within {selection_config.tolerance_db:g} dB of best")
+    chosen = selection.chosen
+    ax.plot([chosen.num_basis], [chosen.psnr], marker="*", markersize=16, color="tab:red", linestyle="none",
+            label=f"chosen: J = {chosen.num_basis}, {'specular' if chosen.specular else 'Lambertian'}")
+    ax.set_xlabel("number of basis BRDFs J")
+    ax.set_ylabel("validation relighting PSNR (dB)")
+    ax.set_title("Model selection")
+    ax.xaxis.get_major_locator().set_params(integer=True)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.text(0.5, 0.005, f"Each candidate fitted for {selection_config.iterations} steps, scored on every 5th fit light; "
+             + selection.rule, ha="center", fontsize=7, wrap=True)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    save_figure(fig, path)
+
+
+# ----------------------------------------------------------------------------------------------
+# Benchmark
+# ----------------------------------------------------------------------------------------------
+
+
+def bench_invrender(repeats: int = 3, iterations: int = 50, family: str = "tri_random", num_patterns: int = 4,
+                    num_basis: int = 3, seed: int = 0) -> dict:
+    """Speed and memory of the inverse renderer on a full 512 x 612 object (``displex bench invrender``).
+
+    The object is the svbrdf sphere of ``capture_sim`` at full resolution; its captures under
+    ``num_patterns`` patterns of ``family`` are rendered from the true parameters (auto exposure,
+    rig noise), which is the image model the fit uses, without building the 540 MB OLAT stack.
+    Timed (medians over ``repeats``): the initial estimate (photometric stereo on every pixel);
+    ``iterations`` Adam steps without normal search; one normal-search round; the full-image
+    evaluation (24 held-out OLAT images). ``full_1000_iter_s`` is *extrapolated*:
+        initial + 1000 * per_iter + (search rounds of the default schedule) * search_round + evaluation
+    Baseline: one step of a naive implementation that shades every (pixel, light) pair with
+    ``capture_sim.render.render_olat`` (broadcast (B, K, 3) geometry) and contracts with einsum.
+
+    Returns:
+        ``{"full_1000_iter_s", "per_iter_s", "pixels", "peak_rss_mb", ...}`` with the parts above.
+    """
+    import statistics
+
+    from capture_sim.materials import make_material
+    from capture_sim.render import render_olat
+    from capture_sim.shapes import cast_camera_rays, make_shape
+    from capture_sim.simulator import display_emission
+    from patterns.families import make_patterns
+    from reconstruct.inverse_render import EmissionPlan, search_round, shading_geometry
+    from train.bench import FULL_SIZE, machine_info, peak_rss_mb, reset_peak_rss
+
+    if repeats < 1 or iterations < 1:
+        raise InputError("repeats and iterations must be at least 1")
+    peak_reset = reset_peak_rss()
+    height, width = FULL_SIZE
+    rig = load_rig()
+    camera_rig = rig.with_resolution(height, width)
+    hits = cast_camera_rays(make_shape("sphere", seed=seed, distance=rig.working_distance), camera_rig.camera.matrix(), height, width)
+    material = make_material("svbrdf", hits.points, seed=seed)
+    pixel_index = torch.nonzero(hits.mask.reshape(-1)).squeeze(1)
+    points = hits.points.reshape(-1, 3)[pixel_index].float()
+    true_normals = hits.normals.reshape(-1, 3)[pixel_index].float()
+    weights = material.weights.reshape(-1, material.num_basis)[pixel_index].float()
+    lights = rig.lights()
+    patterns = make_patterns(family, num_patterns, rig.rows, rig.cols, seed=seed)
+    emitted = display_emission(patterns, rig.backlight_flat(), rig.gamma, rig.scale)
+    with torch.no_grad():
+        radiance = render_under_patterns(true_normals, points, lights, emitted, weights, material.diffuse_albedo.float(),
+                                         material.specular_albedo.float(), material.roughness.float(), rig.falloff)
+        exposure = auto_exposure(radiance)
+        captures = sensor(exposure * radiance, rig.noise, rig.bit_depth, torch.Generator().manual_seed(seed))
+    emission = exposure * emitted
+    count = int(pixel_index.numel())
+
+    timings_initial = []
+    for _ in range(repeats):
+        tick = time.perf_counter()
+        initial = initial_estimate(captures, emission, points, lights, rig.falloff, pixel_index=pixel_index, height=height, width=width)
+        timings_initial.append(time.perf_counter() - tick)
+    fit_config = FitConfig(num_basis=num_basis, iterations=iterations, normal_search_at=(), seed=seed)
+    fit_times, results = [], []
+    for _ in range(repeats):
+        result = fit_inverse_render(captures, emission, points, lights, rig.falloff, pixel_index, height, width, fit_config, initial)
+        fit_times.append(result.seconds)
+        results.append(result)
+    per_iter = statistics.median(fit_times) / iterations
+
+    # One normal-search round at the state after the timed fit.
+    from reconstruct.inverse_render import BasisModel
+
+    model = BasisModel.from_result(results[-1], fit_config)
+    plan = EmissionPlan(emission)
+    geometry = shading_geometry(points, lights[plan.light_index], rig.falloff)
+    pixels_first = captures.permute(1, 0, 2).contiguous()
+    saturated = pixels_first >= fit_config.saturation_threshold
+    search_times = []
+    for _ in range(repeats):
+        tick = time.perf_counter()
+        search_round(model, geometry, plan, pixels_first, saturated, fit_config)
+        search_times.append(time.perf_counter() - tick)
+    test_lights = split_lights(rig.num_lights).test
+    eval_times = []
+    for _ in range(repeats):
+        tick = time.perf_counter()
+        results[-1].render(points, lights, olat_emission(test_lights, rig.num_lights, exposure), rig.falloff)
+        eval_times.append(time.perf_counter() - tick)
+
+    # Naive baseline: broadcast shading of every (pixel, light) pair, then an einsum with the emission.
+    batch = torch.randperm(count, generator=torch.Generator().manual_seed(seed))[: min(fit_config.batch_pixels, count)]
+    parameters = [initial.normal[batch].clone().requires_grad_(), torch.zeros(batch.numel(), num_basis, requires_grad=True),
+                  torch.full((num_basis, 3), 0.5, requires_grad=True), torch.full((num_basis,), 0.5, requires_grad=True),
+                  torch.full((num_basis,), 0.5, requires_grad=True)]
+
+    def naive_step():
+        normals = parameters[0] / parameters[0].norm(dim=-1, keepdim=True)
+        diffuse, specular = render_olat(points[batch], normals, lights, torch.softmax(parameters[1], -1), parameters[2],
+                                        parameters[3], parameters[4], rig.falloff)
+        images = torch.einsum("mkc,knc->mnc", emission, diffuse + specular)
+        torch.sqrt(((images - captures[:, batch]) ** 2).mean()).backward()
+
+    naive_step()
+    naive_times = []
+    for _ in range(repeats):
+        tick = time.perf_counter()
+        naive_step()
+        naive_times.append(time.perf_counter() - tick)
+    naive_per_iter = statistics.median(naive_times)
+    search_rounds = len(FitConfig().normal_search_at)
+    initial_s, search_s, eval_s = statistics.median(timings_initial), statistics.median(search_times), statistics.median(eval_times)
+    return {
+        "target": "invrender",
+        "full_1000_iter_s": initial_s + 1000 * per_iter + search_rounds * search_s + eval_s,
+        "full_1000_iter_extrapolated": True,
+        "extrapolation": f"initial + 1000 * per_iter + {search_rounds} search rounds + evaluation, each timed separately "
+                         f"({iterations} timed steps per repeat)",
+        "per_iter_s": per_iter,
+        "pixels": count,
+        "peak_rss_mb": peak_rss_mb(),
+        "peak_measured": "whole benchmark (VmHWM reset at its start)" if peak_reset else "whole process",
+        "initial_estimate_s": initial_s,
+        "search_round_s": search_s,
+        "evaluation_s": eval_s,
+        "naive_per_iter_s": naive_per_iter,
+        "naive_vs_fast_ratio": naive_per_iter / per_iter,
+        "batch_pixels": int(batch.numel()),
+        "image": [height, width],
+        "lights": rig.num_lights,
+        "patterns": {"family": family, "M": num_patterns},
+        "J": num_basis,
+        "mae_after_timed_steps": normal_error_stats(results[-1].normal, true_normals)["mae"],
+        "repeats": repeats,
+        "machine": machine_info(),
+    }
