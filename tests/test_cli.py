@@ -93,3 +93,21 @@ def test_patterns_make_and_export_round_trip(tmp_path):
     assert run(["import-frames", str(frames), "--out", str(recovered)]) == 0
     original, back = np.load(patterns)["patterns"], np.load(recovered)["patterns"]
     assert np.abs(original - back).max() <= 1 / 255
+
+
+def test_evaluate_json_matches_saved_normal_maps(tmp_path, scene_file):
+    patterns = tmp_path / "mono.npz"
+    assert run(["patterns", "make", "--family", "mono_gradient", "--M", "4", "--out", str(patterns)]) == 0
+    out, report = tmp_path / "eval", tmp_path / "eval.json"
+    assert run(["evaluate", "--scenes", str(scene_file), "--patterns", str(patterns), "--json", str(report), "--out", str(out)]) == 0
+    document = json.loads(report.read_text())
+    row = document["scenes"][0]
+    assert {"name", "mae", "median", "under_5", "under_10", "under_20", "under_30", "invalid_fraction", "seconds"} <= set(row)
+    with np.load(scene_file) as data:
+        truth, mask = data["normal"].astype(np.float64), data["mask"]
+    estimate = np.load(out / "blob_normal.npy").astype(np.float64)
+    assert np.load(out / "blob_valid.npy").shape == mask.shape
+    cosine = np.clip((estimate[mask] * truth[mask]).sum(-1) / np.linalg.norm(estimate[mask], axis=-1) / np.linalg.norm(truth[mask], axis=-1), -1, 1)
+    assert abs(np.degrees(np.arccos(cosine)).mean() - row["mae"]) < 0.01
+    assert abs(document["mean_mae"] - row["mae"]) < 1e-9
+    assert (out / "summary.png").is_file() and (out / "blob_normals.png").is_file()
