@@ -89,6 +89,17 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--out", type=Path, required=True, help="learned pattern file (.npz)")
     train.set_defaults(handler=_train)
 
+    search = commands.add_parser("search", help="NLopt search over a heuristic family's parameters")
+    search.add_argument("--family", required=True)
+    search.add_argument("--M", type=int, dest="num_patterns", required=True)
+    search.add_argument("--algorithm", default="LN_BOBYQA", help="LN_BOBYQA, LN_COBYLA, LN_SBPLX, GN_CRS2_LM, GN_ESCH, GN_DIRECT_L, LD_MMA, LD_LBFGS")
+    search.add_argument("--maxeval", type=int, default=40)
+    search.add_argument("--maxtime", type=float, default=0.0, help="seconds (0 = no limit)")
+    search.add_argument("--seed", type=int, default=0)
+    search.add_argument("--scenes", type=Path, nargs="+", default=(), help="scenes to optimise on (default: synthetic train split)")
+    search.add_argument("--out", type=Path, required=True, help="best pattern file; the trace goes to <stem>.trace.csv")
+    search.set_defaults(handler=_search)
+
     export = commands.add_parser("export", help="write display frames, manifest and contact sheet for the rig")
     export.add_argument("--patterns", type=Path, required=True)
     export.add_argument("--rig", default=DEFAULT_RIG)
@@ -154,6 +165,14 @@ def _train(args) -> None:
     result = train_patterns(config, args.out, logdir=args.logdir)
     last = f", validation MAE {result.val_history[-1][1]:.2f} deg" if result.val_history else ""
     print(f"wrote learned patterns to {args.out}{last}")
+
+
+def _search(args) -> None:
+    from train.nlopt_search import SearchConfig, run_search
+
+    config = SearchConfig(args.family, args.num_patterns, args.algorithm, args.maxeval, args.maxtime, seed=args.seed, scenes=tuple(str(p) for p in args.scenes))
+    summary = run_search(config, args.out)
+    print(f"{summary['family']} M={summary['M']} {summary['algorithm']}: MAE {summary['start_mae']:.2f} -> {summary['best_mae']:.2f} deg in {summary['evaluations']} evaluations ({summary['stop']})")
 
 
 def _export(args) -> None:
