@@ -1,8 +1,8 @@
 """`displex demo`: the main job on the embedded default, end to end.
 
-Synthesises the default scene set, learns M = 2 and M = 4 patterns on its training split, evaluates
-them on the held-out split against every heuristic family and the published learned patterns at
-three noise levels, and writes ``results.json``, ``report.md`` and charts.
+Synthesises the default scene set, learns M = 2 and M = 4 patterns on its training split, searches
+one heuristic family's parameters with NLopt, evaluates them on the held-out split against every
+heuristic family and the published learned patterns at three noise levels, and writes ``results.json``, ``report.md`` and charts.
 """
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ from reconstruct.photometric_stereo import PSConfig
 from train.evaluate import EvalSettings, evaluate_scene
 from train.figures import save_figure
 from train.learn import TrainConfig, train_patterns
+from train.nlopt_search import SearchConfig, run_search
 from train.scene_pixels import scene_pixels
 
 PUBLISHED_DIR = Path(__file__).resolve().parent.parent / "patterns" / "data" / "ddps"
@@ -50,6 +51,10 @@ class DemoConfig:
     """Rig preset."""
     families: tuple[str, ...] = tuple(FAMILIES)
     """Heuristic families to compare (each at every M it supports)."""
+    search_family: str = "tri_complementary"
+    """Family searched with NLopt (LN_BOBYQA) at the smallest M; '' skips the search."""
+    search_evaluations: int = 20
+    """Objective evaluations of that search."""
 
 
 DEMO_SOLVER = PSConfig(restart_condition=math.inf, max_shadow_iterations=6)
@@ -90,6 +95,14 @@ def run_demo(out: Path, config: DemoConfig = DemoConfig(), progress: bool = True
         published = PUBLISHED_DIR / f"optimized_tri_random_{count}.npy"
         if published.exists():
             pattern_sets[f"published learned M={count}"] = load_patterns(published)[0]
+    if config.search_family:
+        count = min(config.pattern_counts)
+        start = time.perf_counter()
+        search_config = SearchConfig(config.search_family, count, "LN_BOBYQA", maxeval=config.search_evaluations, seed=config.seed, scenes=(str(scene_dir / "train"),), rig=config.rig)
+        searched = out / "patterns" / f"searched_{config.search_family}_M{count}.npz"
+        run_search(search_config, searched, progress=progress)
+        pattern_sets[f"searched {config.search_family} M={count}"] = load_patterns(searched)[0]
+        costs[f"searched {config.search_family} M={count}"] = time.perf_counter() - start
     for name, values in tqdm(pattern_sets.items(), desc="evaluating methods", disable=not progress, unit="method"):
         methods[name] = {"M": int(values.shape[0]), "kind": _kind(name), "by_noise": _evaluate_method(name, torch.as_tensor(values), test_scenes, config.noise_scales, config.seed)}
     document = {
@@ -108,6 +121,8 @@ def run_demo(out: Path, config: DemoConfig = DemoConfig(), progress: bool = True
 def _kind(name: str) -> str:
     if name.startswith("learned"):
         return "learned"
+    if name.startswith("searched"):
+        return "searched"
     if name.startswith("published"):
         return "published"
     return "heuristic"
@@ -142,7 +157,7 @@ def _report(document) -> str:
             learned, _ = _best(document, "learned", count, noise)
             heuristic, name = _best(document, "heuristic", count, noise)
             lines.append(f"| {count} | {noise} | {learned:.2f} | {name} | {heuristic:.2f} | {learned / heuristic:.2f} |")
-    lines += ["", "Learning time (s): " + ", ".join(f"{k}: {v:.0f}" for k, v in document["learning_seconds"].items()), ""]
+    lines += ["", "Learning and search time (s): " + ", ".join(f"{k}: {v:.0f}" for k, v in document["learning_seconds"].items()), ""]
     lines += ["## Charts", "", "![MAE against M](mae_vs_m.png)", "", "![MAE against capture time](mae_vs_capture_time.png)", "",
               "![MAE against compute time](mae_vs_compute_time.png)", "", "![MAE against noise](mae_vs_noise.png)", "", "![Patterns](patterns.png)", ""]
     return "\n".join(lines)
@@ -155,7 +170,7 @@ def _charts(out: Path, document, pattern_sets) -> None:
     default = "1.0" if "1.0" in noises else noises[0]
     methods = document["methods"]
     families = sorted({name.rsplit(" M=", 1)[0] for name in methods})
-    markers = {"learned": "o", "published": "s", "heuristic": "x"}
+    markers = {"learned": "o", "published": "s", "heuristic": "x", "searched": "^"}
     for key, xlabel, filename, title in (
         ("M", "number of patterns M", "mae_vs_m.png", "Normal error against pattern count"),
         ("capture", "capture time (s) = M x exposure", "mae_vs_capture_time.png", "Accuracy against capture time"),
