@@ -22,13 +22,27 @@ per-pattern gain instead, and lights no pattern uses are not shaded at all.
 Far field: with ``far_field=True`` every pixel sees every light from the object's centroid (one
 direction, distance and half vector per light), which is what a distant display would do.
 
-Fit (Choi et al., ICCV 2025): initialise normals with analytic photometric stereo
-(``reconstruct.photometric_stereo.solve_ps``), cluster the photometric-stereo albedo (a
-pseudo-diffuse image) by hue and saturation with k-means into J clusters for one-hot weights and
-the basis diffuse albedos, set rho_s = r = 0.5, then minimise with Adam on random batches of pixels
-    RMSE(rendered - captured) + lambda_tv * TV(normals)
-TV is the mean L1 difference of unit normals between 4-neighbours in the image grid. Saturated
-captures only say "at least full scale": their residual counts only where the rendering is darker.
+Fit (Choi et al., ICCV 2025), with the changes marked (*):
+1. Start: analytic photometric stereo (``solve_ps``; for OLAT captures a near-field Woodham least
+   squares with reweighting against highlights, ``olat_least_squares``). (*) Pixels photometric
+   stereo leaves invalid take their valid neighbours' values instead of facing the camera, and
+   every normal is tilted to n . v >= 0.2: a start at n . v <= 0 sees no specular lobe, hence no
+   gradient to leave by.
+2. Clusters: k-means on hue and saturation of the photometric-stereo albedo (a pseudo-diffuse
+   image) into J clusters: one-hot weights (softmax logits, 0.9 on the own cluster).
+3. Basis BRDFs: roughness 0.5. (*) Diffuse and specular albedos from their least-squares values at
+   the starting normals and clusters (``least_squares_albedos``) instead of the cluster median and
+   rho_s = 0.5: 0.5 in a scene's arbitrary radiometric units can be far off, and a lobe the scene
+   does not have then dominates a short fit.
+4. Adam on random batches of pixels, minimising
+       RMSE(rendered - captured) + lambda_tv * TV(normals)
+   with TV the mean L1 difference of unit normals between right and lower neighbours in the image
+   grid. Saturated captures only say "at least full scale": their residual counts only where the
+   rendering is darker. Learning rates decay exponentially.
+5. (*) Normal search: with few patterns and sharp lobes, a pixel's error has local minima in the
+   normal that gradient steps cannot leave (a start 15 degrees off stays there even with the true
+   BRDFs). At a few points of the fit, the worst-fitted pixels try a grid over the visible
+   hemisphere and a finer cap around the best (``search_normals``); the best candidate wins.
 """
 from __future__ import annotations
 
@@ -90,13 +104,6 @@ class ShadingGeometry:
         return ShadingGeometry(
             self.lights, self.anchor[index], self.view[index],
             self.inverse_distance[index], self.falloff[index], self.inverse_half_norm[index],
-        )
-
-    def with_lights(self, light_index: torch.Tensor) -> "ShadingGeometry":
-        """Constants restricted to (and ordered as) the lights ``light_index``."""
-        return ShadingGeometry(
-            self.lights[light_index], self.anchor, self.view,
-            self.inverse_distance[:, light_index], self.falloff[:, light_index], self.inverse_half_norm[:, light_index],
         )
 
 

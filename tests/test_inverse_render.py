@@ -494,6 +494,31 @@ def test_run_invrender_bad_settings_raise(scene_file, bad):
         run_invrender(InvRenderConfig(scene=scene_file, **bad))
 
 
+def test_run_invrender_without_ground_truth_normals(tmp_path, small_scene):
+    import dataclasses
+
+    from train.invrender_command import InvRenderConfig, run_invrender
+
+    save_scene(dataclasses.replace(small_scene[0], normal=None), tmp_path / "no-normals.npz")
+    out = tmp_path / "run"
+    result = run_invrender(InvRenderConfig(scene=tmp_path / "no-normals.npz", out=out, basis="1", iterations=2))
+    assert result["mae"] is None and result["normal_error"] is None and math.isfinite(result["psnr"])
+    assert (out / "normals_figure.png").is_file()
+
+
+def test_run_invrender_failure_leaves_no_staged_logs(tmp_path, scene_file, monkeypatch):
+    import train.invrender_command as command
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("fit failed")
+
+    monkeypatch.setattr(command, "fit_inverse_render", broken)
+    out = tmp_path / "run"
+    with pytest.raises(RuntimeError):
+        command.run_invrender(command.InvRenderConfig(scene=scene_file, out=out, basis="1", iterations=2))
+    assert not list(out.glob(".tensorboard.*")) and not (out / "tensorboard").exists()
+
+
 def test_run_invrender_missing_scene_raises(tmp_path):
     from train.invrender_command import InvRenderConfig, run_invrender
 

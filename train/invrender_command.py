@@ -38,7 +38,7 @@ from patterns.png import write_png
 from reconstruct.metrics import angular_error_deg, normal_metrics
 from reconstruct.inverse_render import FitConfig, InverseRenderResult, fit_inverse_render, initial_estimate, render_under_patterns
 from reconstruct.model_selection import SelectionConfig, choose_light_model, light_spread, select_basis
-from reconstruct.relight import olat_emission, relighting_metrics, split_lights
+from reconstruct.relight import TEST_EVERY, VALIDATION_EVERY, olat_emission, relighting_metrics, split_lights
 from train.figures import for_display, image_grid, normal_to_rgb, save_figure
 from train.scene_pixels import scene_pixels
 from train.simulate_command import parse_exposure, resolve_exposure
@@ -193,6 +193,14 @@ class _TensorBoard:
         if self.final.exists():
             shutil.rmtree(self.final)
         self.staging.rename(self.final)  # one rename: readers never see a half-written run
+        self.writer = None
+
+    def discard(self) -> None:
+        """Drop the staged logs of a run that failed."""
+        if self.writer is not None:
+            self.writer.close()
+            shutil.rmtree(self.staging, ignore_errors=True)
+            self.writer = None
 
 
 def run_invrender(config: InvRenderConfig) -> dict:
@@ -211,13 +219,27 @@ def run_invrender(config: InvRenderConfig) -> dict:
     rig = rig_for_scene(load_rig(config.rig), scene)
     pixels = scene_pixels(scene, rig)
     split = split_lights(pixels.transport.num_lights)
-    num_lights = pixels.transport.num_lights
-    pixel_index, height, width = pixels.transport.pixel_index, scene.height, scene.width
-    points, lights, falloff = pixels.points.float(), pixels.lights().float(), rig.falloff
     data = _prepare_data(config, scene, rig, pixels, split)
     timings["data"] = time.perf_counter() - start
-    grid = {"pixel_index": pixel_index, "height": height, "width": width}
+    grid = {"pixel_index": pixels.transport.pixel_index, "height": scene.height, "width": scene.width}
     board = _TensorBoard(None if config.out is None else Path(config.out))
+    try:
+        output = _fit_and_evaluate(config, scene, pixels, split, data, grid, board, timings, start)
+    except BaseException:
+        board.discard()
+        raise
+    board.close()
+    if config.json is not None:
+        write_json(config.json, output)
+    return output
+
+
+def _fit_and_evaluate(config: InvRenderConfig, scene, pixels, split, data: _Data, grid: dict, board: _TensorBoard,
+                      timings: dict, start: float) -> dict:
+    """Initial estimate, light model, basis selection, final fit, evaluation and outputs."""
+    num_lights = pixels.transport.num_lights
+    pixel_index, height, width = grid["pixel_index"], grid["height"], grid["width"]
+    points, lights, falloff = pixels.points.float(), pixels.lights().float(), pixels.rig.falloff
 
     # ---- starting point: analytic photometric stereo on the fit captures
     tick = time.perf_counter()
@@ -278,8 +300,9 @@ def run_invrender(config: InvRenderConfig) -> dict:
         "pixels": int(pixel_index.numel()),
         "image": [height, width],
         "lights": {"fit": int(split.fit.numel()), "test": int(split.test.numel()), "validation": int(split.validation.numel()),
-                   "test_every": 6, "validation_every": 5},
+                   "test_every": TEST_EVERY, "validation_every": VALIDATION_EVERY},
         "fit": {"iterations": config.iterations, "final_rmse": result.rmse_history[-1] if result.rmse_history else None,
+                "normals_searched": result.normals_searched, "seconds": result.seconds,
                 "fit_config": _jsonable(asdict(fit_config))},
         "initial_estimate": {"valid_fraction": float(initial.valid.double().mean()),
                              **({"normal_error": normal_error_stats(initial.normal, pixels.normal)} if pixels.normal is not None else {})},
@@ -290,9 +313,6 @@ def run_invrender(config: InvRenderConfig) -> dict:
     }
     if config.out is not None:
         _write_outputs(Path(config.out), output, config, result, relit, data, split, pixels, selection, scene)
-    board.close()
-    if config.json is not None:
-        write_json(config.json, output)
     return output
 
 
