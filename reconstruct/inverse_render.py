@@ -853,7 +853,9 @@ class InverseRenderResult:
         far_field: the model was fitted with far-field shading.
         loss_history: per-step total loss.
         rmse_history: per-step RMSE data term (full scale 1).
-        seconds: wall time of the optimisation (without the initial estimate).
+        seconds: wall time of the optimisation (without the initial estimate), setup included.
+        setup_seconds: the part of ``seconds`` before the first step (clusters, least-squares
+            albedos, shading constants).
         normals_searched: pixels whose normal the global search changed (all rounds).
     """
 
@@ -867,6 +869,7 @@ class InverseRenderResult:
     loss_history: list = field(default_factory=list)
     rmse_history: list = field(default_factory=list)
     seconds: float = 0.0
+    setup_seconds: float = 0.0
     normals_searched: int = 0
 
     @property
@@ -1125,6 +1128,7 @@ def _optimise(model, captures, emission, points, lights, falloff, pixel_index, h
     loss_history, rmse_history = [], []
     search_steps = {int(round(at * config.iterations)) for at in config.normal_search_at}
     searched = 0
+    setup_seconds = time.perf_counter() - start
     for step in range(config.iterations):
         # ---- global normal search for pixels stuck far above the typical error
         if step in search_steps:
@@ -1196,5 +1200,6 @@ def _optimise(model, captures, emission, points, lights, falloff, pixel_index, h
             loss_history=loss_history,
             rmse_history=rmse_history,
             seconds=time.perf_counter() - start,
+            setup_seconds=setup_seconds,
             normals_searched=searched,
         )

@@ -16,8 +16,8 @@ photometric-stereo starting point (normals and albedo) both ways under the fit e
 far field only when they differ by less than ``far_field_tolerance`` in relative RMS,
     sqrt(mean((near - far)^2) / mean(near^2)) < 0.005,
 a scale-free test (an absolute PSNR would call any dim, short-exposed capture "indistinguishable").
-0.5 % is below the shot noise of a well-exposed capture, and about the error a far-field model
-adds to a basis BRDF fit; on the reference rig (object 0.5 m away, display 1.2 m wide) synthetic
+0.5 % is below the shot noise of a well-exposed capture (reference sensor: sqrt(1e-4 * 0.5) / 0.5
+= 1.4 % at half scale); on the reference rig (object 0.5 m away, display 1.2 m wide) synthetic
 spheres differ by 7-9 %. It also reports the spread of light directions and falloff across the object.
 """
 from __future__ import annotations
@@ -49,13 +49,15 @@ class SelectionConfig:
     """The J sweep stops after this many consecutive J without improvement."""
     iterations: int = 150
     """Adam steps per candidate fit (fewer than the final fit: candidates only need ranking)."""
+    batch_pixels: int = 2048
+    """Pixels per Adam step of a candidate (the final fit uses its own batch size)."""
     far_field_tolerance: float = 0.005
     """Far-field shading is used when its rendering of the starting point differs from near field's
     by less than this relative RMS."""
 
     def __post_init__(self):
-        if self.max_basis < 1 or self.patience < 1 or self.iterations < 1:
-            raise InputError("SelectionConfig: max_basis, patience and iterations must be >= 1")
+        if self.max_basis < 1 or self.patience < 1 or self.iterations < 1 or self.batch_pixels < 1:
+            raise InputError("SelectionConfig: max_basis, patience, iterations and batch_pixels must be >= 1")
         if self.tolerance_db < 0 or self.min_improvement_db < 0 or self.far_field_tolerance < 0:
             raise InputError("SelectionConfig: tolerances must be non-negative")
 
@@ -263,8 +265,8 @@ def select_basis(
         height, width: image size.
         validation_emission: (V, K, 3) emission of the validation images (e.g. exposed OLAT rows).
         validation_images: (V, N, 3) captured validation images in [0, 1].
-        template: fit settings of every candidate; ``num_basis``, ``specular`` and ``iterations``
-            are replaced (iterations by ``config.iterations``).
+        template: fit settings of every candidate; ``num_basis``, ``specular``, ``iterations`` and
+            ``batch_pixels`` are replaced (the last two from ``config``).
         config: sweep settings.
         initial: starting point shared by all candidates (computed from ``captures`` when None).
         log: optional callback ``log(num_basis, specular, candidate)`` after each candidate.
@@ -280,7 +282,8 @@ def select_basis(
 
     def evaluate(num_basis: int, specular: bool) -> Candidate:
         start = time.perf_counter()
-        fit_config = dataclasses.replace(template, num_basis=num_basis, specular=specular, iterations=config.iterations)
+        fit_config = dataclasses.replace(template, num_basis=num_basis, specular=specular, iterations=config.iterations,
+                                         batch_pixels=config.batch_pixels)
         result = fit_inverse_render(captures, emission, points, lights, falloff, pixel_index, height, width, fit_config, initial)
         predicted = result.render(points, lights, validation_emission, falloff).double().clamp(0.0, 1.0)
         candidate = Candidate(
