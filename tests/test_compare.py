@@ -1,0 +1,171 @@
+"""Comparison: config loading, the derived tables against plain computations, and a tiny end-to-end run."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from capture_sim.errors import InputError
+from capture_sim.rig import load_rig
+from capture_sim.synth import write_scene_set
+from train.compare import (
+    CompareConfig,
+    collect_methods,
+    compare_config_from_dict,
+    load_compare_config,
+    repository_root,
+    rig_exposure_ms,
+    run_compare,
+    run_demo,
+)
+from train.report import CHARTS, aggregate_rows, summary_tables
+
+SIZE = (24, 29)
+REPO = repository_root(Path(__file__).resolve().parent.parent / "configs" / "compare" / "demo.toml")
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    """The default scene set at 24 x 29 pixels, written as files (train/ and test/)."""
+    folder = tmp_path_factory.mktemp("scenes")
+    write_scene_set(folder, load_rig(), SIZE[0], SIZE[1], seed=0, progress=False)
+    return folder
+
+
+def tiny_config(scenes, **changes) -> CompareConfig:
+    values = dict(
+        pattern_counts=[2], noise_scales=[1.0], default_noise=1.0, heuristics=["tri_complementary"],
+        learned={"steps": 2, "val_every": 0, "pixels_per_scene": 64},
+        external=[{"name": "ddps_learned_M2", "path": "patterns/data/ddps/optimized_tri_random_2.npy"},
+                  {"name": "ddps_learned_M4", "path": "patterns/data/ddps/optimized_tri_random_4.npy"}],
+        train_scenes=[str(scenes / "train")], test_scenes=[str(scenes / "test")], scene_size=list(SIZE),
+    )
+    values.update(changes)
+    return compare_config_from_dict(values, REPO)
+
+
+def test_shipped_configs_load():
+    for name in ("default", "demo"):
+        config = load_compare_config(REPO / "configs" / "compare" / f"{name}.toml")
+        assert len(config.noise_scales) >= 3 and config.default_noise in config.noise_scales
+        assert config.search and config.external
+        for item in config.external:
+            assert (REPO / item.path).is_file()
+    default = load_compare_config("default")
+    assert default.seeds_for(4) == (0, 1, 2) and default.seeds_for(2) == (0,)
+    assert default.search[0].num_patterns == 2
+    demo = load_compare_config("demo")
+    assert demo.train_config(10, 0).steps < demo.train_config(2, 0).steps
+
+
+def test_config_errors(scenes):
+    with pytest.raises(InputError, match="unknown key"):
+        tiny_config(scenes, colour="red")
+    with pytest.raises(InputError, match="default_noise"):
+        tiny_config(scenes, default_noise=2.0)
+    with pytest.raises(InputError, match="may not set"):
+        tiny_config(scenes, learned={"num_patterns": 3})
+    with pytest.raises(InputError, match="unknown key"):
+        tiny_config(scenes, learned={"stepz": 3})
+    with pytest.raises(InputError, match="families"):
+        tiny_config(scenes, heuristics=["checkerboard"])
+    with pytest.raises(InputError, match="algorithm"):
+        tiny_config(scenes, search=[{"family": "tri_complementary", "M": 2, "algorithm": "simplex"}])
+
+
+def test_relative_paths_resolve_against_the_repository_root(scenes):
+    config = tiny_config(scenes)
+    assert config.external[0].path == str(REPO / "patterns" / "data" / "ddps" / "optimized_tri_random_2.npy")
+    assert config.train_scenes == (str(scenes / "train"),)
+
+
+def test_rig_exposure_time():
+    assert rig_exposure_ms("dir-odyssey-ark")[0] == 440.0
+    assert rig_exposure_ms("panel-32in-5x10")[0] > 0
+
+
+def test_unsupported_and_mismatched_methods_are_skipped_with_a_reason(scenes, tmp_path):
+    config = tiny_config(scenes, pattern_counts=[1], heuristics=["tri_complementary", "olat"], learned_counts=[], include_olat_woodham=False)
+    methods, skipped, _ = collect_methods(config, load_rig(), tmp_path, progress=False)
+    assert [m.id for m in methods] == ["heuristic_olat_M1"]
+    reasons = {s["method"]: s["reason"] for s in skipped}
+    assert "supports M = 2..12" in reasons["tri_complementary"]
+    assert reasons["ddps_learned_M2"] == reasons["ddps_learned_M4"] == "M is not in pattern_counts"
+
+
+def fake_results():
+    """Results of three heuristics, two learned seeds and a search at M = 2, two noise levels."""
+    def method(kind, series, mae_low, mae_high, seed=None, cost=None):
+        evaluations = [{"noise_scale": noise, "mae": mae, "median": mae / 2, "under_10": 0.5, "invalid_fraction": 0.0, "exposure": 1.0,
+                        "capture_seconds": 0.88, "compute_seconds": 0.1} for noise, mae in ((0.5, mae_low), (2.0, mae_high))]
+        return {"id": f"{series}{seed}", "kind": kind, "series": series, "label": series, "M": 2, "seed": seed, "cost_seconds": cost, "evaluations": evaluations}
+
+    methods = [method("heuristic", "a", 10.0, 20.0), method("heuristic", "b", 12.0, 15.0), method("heuristic", "c", 30.0, 31.0),
+               method("learned", "learned", 8.0, 17.0, seed=0, cost=10.0), method("learned", "learned", 9.0, 19.0, seed=1, cost=20.0),
+               method("search", "s", 9.5, 14.0, cost=5.0)]
+    return {"methods": methods, "noise_scales": [0.5, 2.0], "pattern_counts": [2], "default_noise": 0.5}
+
+
+def test_summary_tables_against_plain_computation():
+    results = fake_results()
+    rows = {row["series"]: row for row in aggregate_rows(results, 2.0)}
+    assert rows["learned"]["mae"] == pytest.approx(18.0) and rows["learned"]["mae_std"] == pytest.approx(1.0)
+    assert rows["learned"]["cost_seconds"] == pytest.approx(15.0) and rows["learned"]["seeds"] == 2
+    summary = summary_tables(results)
+    by_noise = {c["noise_scale"]: c for c in summary["learned_vs_heuristic"]}
+    assert by_noise[0.5]["best_heuristic"] == "a" and by_noise[0.5]["ratio"] == pytest.approx(8.5 / 10.0)
+    assert by_noise[2.0]["best_heuristic"] == "b" and by_noise[2.0]["ratio"] == pytest.approx(18.0 / 15.0)
+    assert by_noise[2.0]["best_tuned"] == "s" and by_noise[2.0]["ratio_tuned"] == pytest.approx(18.0 / 14.0)
+    spread = {s["noise_scale"]: s for s in summary["seed_spread"]}
+    assert spread[0.5]["seeds"] == [0, 1] and spread[0.5]["min"] == 8.0 and spread[0.5]["max"] == 9.0
+    assert spread[2.0]["std"] == pytest.approx(np.std([17.0, 19.0]))
+
+
+def test_run_compare_end_to_end_and_resume(scenes, tmp_path):
+    config = tiny_config(scenes)
+    results = run_compare(config, tmp_path, progress=False)
+    for key in ("config", "rig", "exposure_ms", "methods", "skipped", "summary", "timings", "test_scenes", "noise_scales"):
+        assert key in results
+    assert json.loads((tmp_path / "results.json").read_text())["exposure_ms"] == 440.0
+    kinds = {m["id"]: m["kind"] for m in results["methods"]}
+    assert kinds == {"heuristic_tri_complementary_M2": "heuristic", "learned_M2_seed0": "learned",
+                     "external_ddps_learned_M2": "external", "olat_woodham": "reference"}
+    for method in results["methods"]:
+        (evaluation,) = method["evaluations"]
+        assert len(evaluation["scenes"]) == 4
+        for key in ("mae", "median", "under_5", "under_30", "invalid_fraction", "exposure", "capture_seconds", "compute_seconds"):
+            assert np.isfinite(evaluation[key])
+        assert evaluation["capture_seconds"] == pytest.approx(method["M"] * 0.44)
+    learned = next(m for m in results["methods"] if m["kind"] == "learned")
+    assert learned["cost_seconds"] > 0 and (tmp_path / learned["pattern_file"]).is_file()
+    assert results["skipped"] == [{"method": "ddps_learned_M4", "M": 4, "reason": "M is not in pattern_counts"}]
+    assert results["summary"]["learned_vs_heuristic"][0]["best_heuristic"] == "tri_complementary"
+
+    report = (tmp_path / "report.md").read_text()
+    for text in ("method x M", "MAE against noise level", "How the advantage", "Capture time", "Compute time", "OLAT + Woodham"):
+        assert text in report
+    for file_name in CHARTS.values():
+        assert (tmp_path / file_name).stat().st_size > 0 and f"({file_name})" in report
+
+    again = run_compare(config, tmp_path, progress=False)
+    assert again["timings"]["learning_seconds"] < 1.0
+    assert next(m for m in again["methods"] if m["kind"] == "learned")["cost_seconds"] == pytest.approx(learned["cost_seconds"])
+    with pytest.raises(InputError, match="another config"):
+        run_compare(tiny_config(scenes, learned={"steps": 3, "val_every": 0, "pixels_per_scene": 64}), tmp_path, progress=False)
+
+
+def test_demo_runs_on_a_tiny_config(tmp_path, capsys):
+    config_path = tmp_path / "configs" / "compare" / "tiny.toml"
+    config_path.parent.mkdir(parents=True)
+    config_path.write_text(
+        "pattern_counts = [2]\nnoise_scales = [0.5, 1.0]\nheuristics = ['tri_gradient']\nscene_size = [20, 24]\n"
+        "include_olat_woodham = false\n[learned_at.2]\nsteps = 50\n[learned]\nval_every = 0\npixels_per_scene = 64\n"
+        "[[search]]\nfamily = 'tri_complementary'\nM = 2\nmaxeval = 2\npixels_per_scene = 50\n"
+    )
+    results = run_demo(tmp_path / "demo", progress=False, config_path=config_path, steps=1)
+    assert (tmp_path / "demo" / "scenes" / "index.json").is_file()
+    assert results["config"]["train_scenes"] == [str(tmp_path / "demo" / "scenes" / "train")]
+    learned = next(m for m in results["methods"] if m["kind"] == "learned")
+    assert learned["info"]["steps"] == 1
+    assert {m["kind"] for m in results["methods"]} == {"heuristic", "learned", "search"}
+    assert "report.md" in capsys.readouterr().out

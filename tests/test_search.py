@@ -1,0 +1,179 @@
+"""NLopt search: the generic minimiser on closed-form objectives, and `run_search` on tiny scenes."""
+import csv
+import json
+import time
+
+import nlopt
+import numpy as np
+import pytest
+import torch
+
+from capture_sim.errors import InputError
+from capture_sim.rig import load_rig
+from capture_sim.scene import save_scene
+from capture_sim.synth import synthesize_scene
+from patterns.families import default_vector, get_family
+from patterns.io import load_patterns
+from train.scene_pixels import scene_pixels
+from train.search import ALGORITHMS, PatternObjective, SearchConfig, minimise, prepare_scenes, run_search, trace_csv
+
+SIZE = (24, 29)
+TARGET = np.array([0.3, -0.2, 0.6])
+LOW, HIGH = -np.ones(3), np.ones(3)
+
+
+def quadratic(x, need_gradient):
+    """f(x) = |x - TARGET|^2, minimum 0 at TARGET, gradient 2 (x - TARGET)."""
+    difference = x - TARGET
+    return float(difference @ difference), (2 * difference if need_gradient else None)
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    """Two tiny training scenes with true normals, written as scene files."""
+    rig = load_rig()
+    folder = tmp_path_factory.mktemp("scenes")
+    for index, (shape, material) in enumerate((("sphere", "lambertian"), ("blob", "svbrdf"))):
+        save_scene(synthesize_scene(shape, material, rig, SIZE[0], SIZE[1], seed=index), folder / f"{shape}.npz")
+    return folder
+
+
+@pytest.mark.parametrize("algorithm", ["LN_BOBYQA", "LN_SBPLX", "LD_MMA", "LD_LBFGS", "GN_CRS2_LM"])
+def test_minimise_improves_and_keeps_history(algorithm):
+    start = np.array([-0.5, 0.5, 0.0])
+    calls = []
+    found = minimise(quadratic, start, LOW, HIGH, algorithm, maxeval=40, seed=1, on_evaluation=lambda *args: calls.append(args))
+    values = [value for _, value in found.history]
+    assert 1 <= len(found.history) <= 40 and len(calls) == len(found.history)
+    assert found.start_value == pytest.approx(quadratic(start, False)[0])
+    assert found.best_value == min(values) <= found.start_value
+    assert found.best_value == pytest.approx(quadratic(found.best_x, False)[0])
+    assert [best for *_, best in calls] == list(np.minimum.accumulate(values))
+    if algorithm != "GN_CRS2_LM":  # a global population method gets no closer in 40 evaluations
+        assert found.best_value < 1e-2 * found.start_value
+
+
+def test_minimise_respects_maxeval_and_single_evaluation():
+    found = minimise(quadratic, np.zeros(3), LOW, HIGH, "GN_ESCH", maxeval=7, seed=0)
+    assert len(found.history) == 7
+    only = minimise(quadratic, np.zeros(3), LOW, HIGH, "LN_BOBYQA", maxeval=1)
+    assert len(only.history) == 1 and np.array_equal(only.best_x, np.zeros(3))
+
+
+@pytest.mark.parametrize("algorithm", ["LN_BOBYQA", "LN_COBYLA", "GN_CRS2_LM", "GN_DIRECT_L", "LD_MMA"])
+def test_roundoff_exception_returns_best_point(algorithm):
+    evaluations = []
+
+    def fragile(x, need_gradient):
+        if len(evaluations) == 4:
+            raise nlopt.RoundoffLimited("simulated round-off")
+        evaluations.append(x.copy())
+        return quadratic(x, need_gradient)
+
+    found = minimise(fragile, np.array([0.9, 0.9, 0.9]), LOW, HIGH, algorithm, maxeval=30)
+    assert len(found.history) == 4
+    assert "RoundoffLimited" in found.stop_reason
+    values = [quadratic(x, False)[0] for x in evaluations]
+    assert found.best_value == pytest.approx(min(values))
+    assert np.allclose(found.best_x, evaluations[int(np.argmin(values))])
+
+
+def test_maxtime_stops_the_search():
+    def slow(x, need_gradient):
+        time.sleep(0.02)
+        return quadratic(x, need_gradient)
+
+    found = minimise(slow, np.zeros(3), LOW, HIGH, "GN_DIRECT_L", maxeval=10_000, maxtime=0.2)
+    assert found.stop_reason == "maxtime reached"
+    assert 1 < len(found.history) < 10_000
+
+
+def test_other_objective_errors_propagate():
+    def broken(x, need_gradient):
+        if x[0] != 0.5:
+            raise ZeroDivisionError("bug")
+        return quadratic(x, need_gradient)
+
+    with pytest.raises(ZeroDivisionError):
+        minimise(broken, np.array([0.5, 0.0, 0.0]), LOW, HIGH, "GN_CRS2_LM", maxeval=10)
+
+
+def test_bad_inputs_raise():
+    with pytest.raises(InputError, match="LN_BOBYQA"):
+        SearchConfig(algorithm="LN_NELDERMEAD")
+    with pytest.raises(InputError, match="families"):
+        SearchConfig(family="checkerboard")
+    with pytest.raises(InputError):
+        SearchConfig(maxeval=0)
+    with pytest.raises(InputError):
+        SearchConfig(maxtime=-1.0)
+    with pytest.raises(InputError, match="xtol_rel"):
+        SearchConfig(xtol_rel=-1.0)
+    with pytest.raises(InputError, match="algorithms"):
+        minimise(quadratic, np.zeros(3), LOW, HIGH, "nelder-mead", maxeval=3)
+    with pytest.raises(InputError, match="outside"):
+        minimise(quadratic, np.full(3, 2.0), LOW, HIGH, "LN_BOBYQA", maxeval=3)
+    with pytest.raises(InputError, match="finite"):
+        minimise(quadratic, np.zeros(3), LOW, np.full(3, np.inf), "GN_DIRECT_L", maxeval=3)
+
+
+def test_trace_csv_columns_and_running_best():
+    history = [(np.array([1.0, 2.0]), 5.0), (np.array([1.5, 2.0]), 7.0), (np.array([0.5, 2.0]), 3.0)]
+    rows = list(csv.reader(trace_csv(["a", "b"], history).splitlines()))
+    assert rows[0] == ["index", "a", "b", "mae", "best_so_far"]
+    assert [float(row[-1]) for row in rows[1:]] == [5.0, 5.0, 3.0]
+
+
+def test_objective_gradient_matches_central_differences():
+    # The objective jumps slightly wherever a pixel's attached-shadow mask flips (the implicit
+    # gradient holds the masks fixed), so only parameters with a smooth effect are compared, at a
+    # moderate step, on a noise-free scene large enough to average the jumps out.
+    rig = load_rig()
+    scenes = [scene_pixels(synthesize_scene("blob", "svbrdf", rig, 48, 58, seed=1), rig, require_normals=True)]
+    objective = PatternObjective("tri_gradient", 2, scenes, rig.rows, rig.cols, noise_scale=0.0, pixels_per_scene=0)
+    names = [p.name for p in get_family("tri_gradient").parameters(2)]
+    x = default_vector("tri_gradient", 2, lo=0.15, hi=0.8).numpy()
+    value, gradient = objective(x, True)
+    # solve_ps's differentiable path moves its float32 output by ~1e-3 deg.
+    assert value == pytest.approx(objective(x, False)[0], abs=1e-2)
+    assert np.isfinite(gradient).all()
+    for name in ("hi", "pair0_g_radius"):
+        index = names.index(name)
+        step = np.zeros_like(x)
+        step[index] = 0.03
+        central = (objective(x + step, False)[0] - objective(x - step, False)[0]) / 0.06
+        assert gradient[index] == pytest.approx(central, rel=0.35), name
+
+
+@pytest.mark.parametrize("algorithm", ["LN_BOBYQA", "LD_MMA"])
+def test_run_search_writes_patterns_trace_and_chart(scene_dir, tmp_path, algorithm):
+    config = SearchConfig(family="tri_complementary", num_patterns=2, algorithm=algorithm, maxeval=5, scenes=(str(scene_dir),), scene_size=SIZE, pixels_per_scene=200)
+    out = tmp_path / "best.npz"
+    summary = run_search(config, out, logdir=tmp_path / "logs", progress=False)
+    assert summary["best_mae"] <= summary["start_mae"]
+    assert 1 <= summary["evaluations"] <= 5
+
+    rows = list(csv.DictReader((tmp_path / "best.trace.csv").read_text().splitlines()))
+    assert len(rows) == summary["evaluations"]
+    assert [int(row["index"]) for row in rows] == list(range(len(rows)))
+    bests = [float(row["best_so_far"]) for row in rows]
+    assert bests == list(np.minimum.accumulate([float(row["mae"]) for row in rows]))
+    assert bests[-1] == pytest.approx(summary["best_mae"])
+    assert (tmp_path / "best.trace.png").stat().st_size > 0
+    assert json.loads((tmp_path / "best.config.json").read_text())["algorithm"] == algorithm
+    assert any((tmp_path / "logs").iterdir())
+
+    patterns, meta = load_patterns(out)
+    assert patterns.shape == (2, 9, 16, 3)
+    assert meta["made_by"] == "displex search" and meta["algorithm"] == algorithm and meta["family"] == "tri_complementary"
+    assert list(meta["parameters"]) == meta["parameter_names"] == list(rows[0])[1:-2]
+    # The file holds the patterns exactly as evaluated: re-evaluating them gives the recorded MAE.
+    rig = load_rig()
+    objective = PatternObjective("tri_complementary", 2, prepare_scenes([scene_dir], "train", rig, SIZE, 0), rig.rows, rig.cols, pixels_per_scene=200)
+    with torch.no_grad():
+        assert float(objective.value(torch.as_tensor(patterns))) == pytest.approx(meta["best_mae"], abs=1e-2)
+
+
+def test_every_algorithm_is_known_to_nlopt():
+    for name in ALGORITHMS:
+        assert hasattr(nlopt, name)

@@ -1,0 +1,532 @@
+"""Comparison of pattern design methods on held-out scenes (`displex compare`, `displex demo`).
+
+Methods, each evaluated at every pattern count M and noise level on the test scenes with the
+analytic photometric stereo (``train.evaluate.evaluate_scene``, auto exposure):
+- heuristic families at their preset's default parameters (DESIGN section 6);
+- learned patterns (``train.learn.train_patterns``, one run per M and seed, at the default noise);
+- NLopt searches of a family's parameters (``train.search.run_search``, at the default noise);
+- external pattern files (e.g. the published DDPS patterns);
+- the reference: the full OLAT stack (M = K) reconstructed with Woodham least squares.
+Learning and search use the training scenes only; every number in the report comes from the
+test scenes. Outputs: ``results.json`` (every number and the resolved config), ``report.md`` and
+charts (``train.report``), and the learned / searched / heuristic pattern files in ``patterns/``.
+A rerun with the same out folder reuses learned and searched pattern files whose config matches.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from capture_sim.atomic import write_json
+from capture_sim.errors import InputError
+from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, RIG_DIR, load_rig
+from capture_sim.toml_io import load_toml
+from patterns.families import FAMILIES, PRESETS, get_family, make_patterns
+from patterns.io import load_patterns, save_patterns
+from train.config_io import config_from_dict, config_to_dict
+from train.evaluate import EvalSettings, evaluate_scene
+from train.learn import TrainConfig, train_patterns
+from train.search import SearchConfig, prepare_scenes, run_search
+
+DEFAULT_EXPOSURE_MS = 440.0
+"""Exposure time per image (ms) when the rig's TOML gives no ``camera.exposure_ms``."""
+
+SUMMARY_METRICS = ("mae", "median", "under_5", "under_10", "under_20", "under_30", "invalid_fraction", "exposure", "seconds")
+"""Per-scene metrics averaged over the test scenes (each scene weighs the same)."""
+
+_SET_BY_COMPARE = ("num_patterns", "seed", "rig", "scenes", "val_scenes", "scene_size", "scene_seed", "noise_scale")
+
+
+@dataclass(frozen=True)
+class SearchRun:
+    """One NLopt search in a comparison (a ``[[search]]`` table; ``M`` is accepted for num_patterns)."""
+
+    family: str
+    """Family to search."""
+    num_patterns: int
+    """M."""
+    algorithm: str = "LN_BOBYQA"
+    """NLopt algorithm (``train.search.ALGORITHMS``)."""
+    maxeval: int = 60
+    """Largest number of objective evaluations."""
+    maxtime: float | None = None
+    """Wall-clock limit in seconds, or None."""
+    seed: int = 0
+    """NLopt, pixel-subset and noise seed."""
+    pixels_per_scene: int = 3000
+    """Fixed pixels per training scene in the objective (0 = all)."""
+
+    @property
+    def name(self) -> str:
+        return f"search_{self.family}_M{self.num_patterns}_{self.algorithm}"
+
+
+@dataclass(frozen=True)
+class ExternalPatterns:
+    """A pattern file to compare (an ``[[external]]`` table)."""
+
+    name: str
+    """Label in tables and charts."""
+    path: str
+    """Pattern file (.npz or .npy); relative paths are relative to the repository root."""
+
+
+@dataclass(frozen=True)
+class CompareConfig:
+    """Settings of one comparison (TOML files in configs/compare/)."""
+
+    pattern_counts: tuple[int, ...] = (2, 4, 10)
+    """Numbers of patterns M to compare."""
+    noise_scales: tuple[float, ...] = (0.25, 1.0, 4.0)
+    """Noise levels (multipliers of the rig's noise variances) every method is evaluated at."""
+    default_noise: float = 1.0
+    """The noise level of the main tables, of learning and of searches; one of ``noise_scales``."""
+    heuristics: tuple[str, ...] = tuple(FAMILIES)
+    """Heuristic families (at their preset's default parameters); unsupported M are skipped."""
+    heuristic_preset: str = "default"
+    """Preset of the heuristic families: "default" (lo 0, hi 1) or "ddps" (published 0.1 / 0.9)."""
+    learned: dict = field(default_factory=dict)
+    """TrainConfig overrides for every learning run (steps, init, ...); the comparison sets
+    num_patterns, seed, rig, scenes, val_scenes, scene_size, scene_seed and noise_scale itself."""
+    learned_at: dict = field(default_factory=dict)
+    """Further TrainConfig overrides per M (table keys are M), e.g. fewer steps at M = 10."""
+    learned_counts: tuple[int, ...] | None = None
+    """M values to learn patterns for; None = every M in ``pattern_counts``, empty = none."""
+    learned_seeds: tuple[int, ...] = (0,)
+    """Seeds of the learning runs at every learned M."""
+    learned_seeds_at: dict = field(default_factory=dict)
+    """Seeds per M replacing ``learned_seeds`` (table keys are M), to measure the seed spread."""
+    search: tuple[SearchRun, ...] = ()
+    """NLopt searches ([[search]] tables: family, M, algorithm, maxeval, ...)."""
+    external: tuple[ExternalPatterns, ...] = ()
+    """Pattern files to compare ([[external]] tables: name, path)."""
+    include_olat_woodham: bool = True
+    """Evaluate the reference: the full OLAT stack (M = K) with Woodham least squares."""
+    train_scenes: tuple[str, ...] = ()
+    """Scenes for learning and search; empty = the default synthetic train split."""
+    test_scenes: tuple[str, ...] = ()
+    """Held-out scenes of every reported number; empty = the default synthetic test split."""
+    rig: str = DEFAULT_RIG
+    """Rig preset or TOML path."""
+    scene_size: tuple[int, int] = (128, 153)
+    """Image size of the default synthetic scenes."""
+    scene_seed: int = 0
+    """Seed of the default synthetic scenes."""
+    eval_seed: int = 0
+    """Noise seed of the evaluation (``EvalSettings.seed``): every method sees the same draws."""
+    out: str = "runs/compare"
+    """Default output folder (the command's --out replaces it)."""
+
+    def __post_init__(self):
+        counts = list(self.pattern_counts) + list(self.learned_counts or ())
+        if not self.pattern_counts or any(not isinstance(m, int) or m < 1 for m in counts):
+            raise InputError("pattern_counts must list positive integers")
+        if not self.noise_scales or any(s < 0 for s in self.noise_scales):
+            raise InputError("noise_scales must list values >= 0")
+        if self.default_noise not in self.noise_scales:
+            raise InputError(f"default_noise {self.default_noise} must be one of noise_scales {list(self.noise_scales)}")
+        for name in self.heuristics:
+            get_family(name)
+        if self.heuristic_preset not in PRESETS:
+            raise InputError(f"heuristic_preset must be one of {', '.join(PRESETS)}")
+        forbidden = sorted(set(self.learned).union(*map(set, self.learned_at.values())) & set(_SET_BY_COMPARE))
+        if forbidden:
+            raise InputError(f"learned overrides may not set {', '.join(forbidden)} (the comparison sets them)")
+        if not self.learned_seeds or any(not seeds for seeds in self.learned_seeds_at.values()):
+            raise InputError("learned seeds must not be empty")
+        if len({run.name for run in self.search}) != len(self.search):
+            raise InputError("two [[search]] runs have the same family, M and algorithm")
+        if len({item.name for item in self.external}) != len(self.external):
+            raise InputError("external pattern names must be unique")
+        for counts_m in list(self.learned_at) + list(self.learned_seeds_at):
+            if not isinstance(counts_m, int):
+                raise InputError(f"learned_at / learned_seeds_at keys must be M values, got {counts_m!r}")
+        # Every learning and search config is built now, so a bad value fails before any work.
+        for count in self.learned_pattern_counts():
+            self.train_config(count, self.seeds_for(count)[0])
+        for run in self.search:
+            self.search_config(run)
+
+    def learned_pattern_counts(self) -> tuple[int, ...]:
+        """M values with learned patterns."""
+        return tuple(self.pattern_counts if self.learned_counts is None else self.learned_counts)
+
+    def seeds_for(self, num_patterns: int) -> tuple[int, ...]:
+        """Learning seeds at one M."""
+        return tuple(self.learned_seeds_at.get(num_patterns, self.learned_seeds))
+
+    def train_config(self, num_patterns: int, seed: int) -> TrainConfig:
+        """The TrainConfig of the learning run at M = ``num_patterns`` with ``seed``."""
+        values = {**self.learned, **self.learned_at.get(num_patterns, {})}
+        values.update(num_patterns=num_patterns, seed=seed, rig=self.rig, scenes=list(self.train_scenes),
+                      val_scenes=list(self.test_scenes), scene_size=list(self.scene_size), scene_seed=self.scene_seed,
+                      noise_scale=self.default_noise)
+        return config_from_dict(TrainConfig, values, source=f"learned (M = {num_patterns})")
+
+    def search_config(self, run: SearchRun) -> SearchConfig:
+        """The SearchConfig of one [[search]] run (training scenes, default noise)."""
+        return SearchConfig(family=run.family, num_patterns=run.num_patterns, algorithm=run.algorithm, maxeval=run.maxeval,
+                            maxtime=run.maxtime, seed=run.seed, scenes=tuple(self.train_scenes), noise_scale=self.default_noise,
+                            rig=self.rig, scene_size=tuple(self.scene_size), scene_seed=self.scene_seed,
+                            pixels_per_scene=run.pixels_per_scene)
+
+
+def repository_root(config_path: Path) -> Path:
+    """The folder holding the ``configs/`` folder a config file sits in (else the file's folder)."""
+    config_path = Path(config_path).resolve()
+    for parent in config_path.parents:
+        if parent.name == "configs":
+            return parent.parent
+    return config_path.parent
+
+
+def _resolve(path: str, root: Path) -> str:
+    candidate = Path(path).expanduser()
+    return str(candidate if candidate.is_absolute() else root / candidate)
+
+
+def _int_keys(table, what: str) -> dict:
+    if not isinstance(table, dict):
+        raise InputError(f"{what} must be a table keyed by M")
+    try:
+        return {int(key): value for key, value in table.items()}
+    except ValueError:
+        raise InputError(f"{what} keys must be integers (M), got {', '.join(map(str, table))}") from None
+
+
+def compare_config_from_dict(values: dict, root: Path | None = None, source: str = "compare config") -> CompareConfig:
+    """Build a CompareConfig from parsed TOML; relative file paths are resolved against ``root``.
+
+    Args:
+        values: the TOML tables: top-level fields, ``[learned]``, ``[learned_at.M]``,
+            ``[learned_seeds_at]``, ``[[search]]`` and ``[[external]]``.
+        root: folder that relative paths (external patterns, scenes) are relative to; None leaves
+            them as given (relative to the working directory).
+        source: name of the config for error messages.
+    """
+    values = dict(values)
+    for key in ("search", "external"):
+        if not isinstance(values.get(key, []), (list, tuple)):
+            raise InputError(f"{source}: {key} must be an array of tables ([[{key}]])")
+    try:
+        runs = []
+        for table in values.get("search", ()):
+            table = dict(table)
+            if "M" in table:
+                table["num_patterns"] = table.pop("M")
+            runs.append(config_from_dict(SearchRun, table, source=f"{source} [[search]]"))
+        values["search"] = tuple(runs)
+        values["external"] = tuple(config_from_dict(ExternalPatterns, dict(table), source=f"{source} [[external]]")
+                                   for table in values.get("external", ()))
+    except (TypeError, ValueError) as err:
+        if isinstance(err, InputError):
+            raise
+        raise InputError(f"{source}: [[search]] and [[external]] must be arrays of tables") from None
+    if "learned_at" in values:
+        values["learned_at"] = _int_keys(values["learned_at"], "learned_at")
+    if "learned_seeds_at" in values:
+        values["learned_seeds_at"] = {m: tuple(seeds) for m, seeds in _int_keys(values["learned_seeds_at"], "learned_seeds_at").items()}
+    if root is not None:
+        values["external"] = tuple(dataclasses.replace(item, path=_resolve(item.path, root)) for item in values["external"])
+        for key in ("train_scenes", "test_scenes"):
+            if key in values:
+                values[key] = [_resolve(path, root) for path in values[key]]
+    config = config_from_dict(CompareConfig, values, source=source)
+    if config.learned_counts is not None:
+        config = dataclasses.replace(config, learned_counts=tuple(config.learned_counts))
+    return config
+
+
+def load_compare_config(path: str | Path, overrides: dict | None = None) -> CompareConfig:
+    """Load ``configs/compare/NAME.toml`` (or any TOML path); non-None ``overrides`` replace fields.
+
+    Relative paths inside the file are relative to the repository root that holds the file's
+    ``configs/`` folder.
+    """
+    path = Path(path)
+    if path.suffix != ".toml" and not path.exists():
+        path = CONFIG_DIR / "compare" / f"{path}.toml"
+    values = dict(load_toml(path))
+    values.update({key: value for key, value in (overrides or {}).items() if value is not None})
+    return compare_config_from_dict(values, repository_root(path), source=str(path))
+
+
+def compare_config_to_dict(config: CompareConfig) -> dict:
+    """JSON-friendly dict of a CompareConfig (the resolved config written with the results)."""
+    out = config_to_dict(config)
+    out["search"] = [config_to_dict(run) for run in config.search]
+    out["external"] = [config_to_dict(item) for item in config.external]
+    out["learned_at"] = {str(m): dict(v) for m, v in config.learned_at.items()}
+    out["learned_seeds_at"] = {str(m): list(v) for m, v in config.learned_seeds_at.items()}
+    out["learned_counts"] = None if config.learned_counts is None else list(config.learned_counts)
+    return out
+
+
+def rig_exposure_ms(rig_name: str) -> tuple[float, str]:
+    """Exposure time per image (ms) from the rig TOML's ``camera.exposure_ms``, and where it came from."""
+    path = Path(rig_name) if str(rig_name).endswith(".toml") else RIG_DIR / f"{rig_name}.toml"
+    camera = load_toml(path).get("camera", {}) if path.is_file() else {}
+    if "exposure_ms" in camera:
+        return float(camera["exposure_ms"]), f"rig {rig_name}: camera.exposure_ms"
+    return DEFAULT_EXPOSURE_MS, "default (the reference camera's 440 ms; the rig gives no camera.exposure_ms)"
+
+
+# ---------------------------------------------------------------------------------------------
+# Pattern sets to compare
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(eq=False)
+class Method:
+    """One pattern set in the comparison (mutable record filled during the run).
+
+    Attributes:
+        id: unique key, e.g. ``heuristic_tri_complementary_M2`` or ``learned_M4_seed1``.
+        kind: "heuristic", "learned", "search", "external" or "reference".
+        series: what the method is across M (a family, "learned", a search, an external name).
+        label: text for tables and legends.
+        num_patterns: M.
+        patterns: (M, R, C, 3) set values, or "olat" for the reference.
+        pattern_file: where the patterns were written or read, or None.
+        cost_seconds: wall seconds spent learning or searching the patterns (None if free).
+        seed: learning seed (learned methods only).
+        info: extra facts for the report (e.g. a search's start and best training MAE).
+        evaluations: one summary per noise level (``summarise`` plus ``noise_scale``).
+    """
+
+    id: str
+    kind: str
+    series: str
+    label: str
+    num_patterns: int
+    patterns: object
+    pattern_file: str | None = None
+    cost_seconds: float | None = None
+    seed: int | None = None
+    info: dict = field(default_factory=dict)
+    evaluations: list = field(default_factory=list)
+
+
+def _reusable(path: Path, resolved: dict, what: str) -> dict | None:
+    """Meta of an existing output made with the same config; None if absent. Other configs raise."""
+    if not path.exists():
+        return None
+    patterns, meta = load_patterns(path)
+    if meta.get("config") != resolved:
+        raise InputError(f"{path} holds {what} made with another config; delete it or choose another output folder")
+    return {"meta": meta, "patterns": patterns}
+
+
+def _run_record(path: Path) -> dict:
+    record = path.with_name(path.stem + ".run.json")
+    return json.loads(record.read_text()) if record.exists() else {}
+
+
+def learned_method(config: CompareConfig, num_patterns: int, seed: int, pattern_dir: Path, progress: bool) -> Method:
+    """Learn (or reuse) the patterns of one learning run."""
+    train_config = config.train_config(num_patterns, seed)
+    path = pattern_dir / f"learned_M{num_patterns}_seed{seed}.npz"
+    existing = _reusable(path, config_to_dict(train_config), "learned patterns")
+    if existing is None:
+        start = time.perf_counter()
+        result = train_patterns(train_config, path, progress=progress)
+        seconds = time.perf_counter() - start
+        write_json(path.with_name(path.stem + ".run.json"), {"seconds": seconds, "steps": train_config.steps})
+        patterns, val_history = result.patterns, result.val_history
+    else:
+        seconds = _run_record(path).get("seconds")
+        patterns, val_history = existing["patterns"], existing["meta"].get("val_mae_history", [])
+    return Method(f"learned_M{num_patterns}_seed{seed}", "learned", "learned", f"learned (seed {seed})", num_patterns, patterns,
+                  str(path), seconds, seed, {"steps": train_config.steps, "init": train_config.init, "val_mae_history": val_history})
+
+
+def searched_method(config: CompareConfig, run: SearchRun, pattern_dir: Path, progress: bool) -> Method:
+    """Run (or reuse) one NLopt search."""
+    search_config = config.search_config(run)
+    path = pattern_dir / f"{run.name}.npz"
+    existing = _reusable(path, config_to_dict(search_config), "searched patterns")
+    if existing is None:
+        meta = run_search(search_config, path, progress=progress)
+        patterns = load_patterns(path)[0]
+    else:
+        meta, patterns = existing["meta"], existing["patterns"]
+    info = {key: meta[key] for key in ("start_mae", "best_mae", "evaluations", "stop_reason", "sharpness")}
+    info["trace_png"] = str(path.with_name(path.stem + ".trace.png"))
+    return Method(run.name, "search", f"search:{run.family}:{run.algorithm}", f"{run.family} + {run.algorithm}", run.num_patterns,
+                  patterns, str(path), meta["seconds"], info=info)
+
+
+def collect_methods(config: CompareConfig, rig, pattern_dir: Path, progress: bool) -> tuple[list[Method], list[dict], dict]:
+    """Every pattern set of the comparison, the skipped ones with the reason, and phase timings."""
+    methods: list[Method] = []
+    skipped: list[dict] = []
+    timings = {"learning_seconds": 0.0, "search_seconds": 0.0}
+    for count in config.pattern_counts:
+        for name in config.heuristics:
+            family = get_family(name)
+            if not family.supports(count, rig.rows, rig.cols):
+                skipped.append({"method": name, "M": count, "reason": f"{name} supports M = {family.min_patterns}..{family.max_patterns(rig.rows, rig.cols)}"})
+                continue
+            patterns = make_patterns(name, count, rig.rows, rig.cols, preset=config.heuristic_preset).numpy()
+            path = pattern_dir / f"heuristic_{name}_M{count}.npz"
+            save_patterns(path, patterns, {"family": name, "preset": config.heuristic_preset, "made_by": "displex compare", "rig": rig.name})
+            methods.append(Method(f"heuristic_{name}_M{count}", "heuristic", name, name, count, patterns, str(path)))
+    for count in config.learned_pattern_counts():
+        for seed in config.seeds_for(count):
+            start = time.perf_counter()
+            methods.append(learned_method(config, count, seed, pattern_dir, progress))
+            timings["learning_seconds"] += time.perf_counter() - start
+    for run in config.search:
+        if run.num_patterns not in config.pattern_counts:
+            skipped.append({"method": run.name, "M": run.num_patterns, "reason": "M is not in pattern_counts"})
+            continue
+        start = time.perf_counter()
+        methods.append(searched_method(config, run, pattern_dir, progress))
+        timings["search_seconds"] += time.perf_counter() - start
+    for item in config.external:
+        patterns, meta = load_patterns(item.path)
+        count = patterns.shape[0]
+        if patterns.shape[1:3] != (rig.rows, rig.cols):
+            skipped.append({"method": item.name, "M": count, "reason": f"patterns are {patterns.shape[1]} x {patterns.shape[2]}, the rig is {rig.rows} x {rig.cols}"})
+        elif count not in config.pattern_counts:
+            skipped.append({"method": item.name, "M": count, "reason": "M is not in pattern_counts"})
+        else:
+            methods.append(Method(f"external_{item.name}", "external", f"external:{item.name}", item.name, count, patterns, item.path,
+                                  info={"meta": meta}))
+    if config.include_olat_woodham:
+        methods.append(Method("olat_woodham", "reference", "olat_woodham", f"OLAT + Woodham (M = {rig.num_lights})", rig.num_lights, "olat"))
+    return methods, skipped, timings
+
+
+# ---------------------------------------------------------------------------------------------
+# Evaluation
+# ---------------------------------------------------------------------------------------------
+
+
+def summarise(scene_metrics: list[dict], num_patterns: int, exposure_ms: float) -> dict:
+    """Scene-averaged metrics of one method at one noise level, with capture and compute time.
+
+    Args:
+        scene_metrics: ``evaluate_scene`` metrics per test scene.
+        num_patterns: M (images captured).
+        exposure_ms: exposure time per image in milliseconds.
+
+    Returns:
+        dict: every ``SUMMARY_METRICS`` entry averaged over scenes (``seconds`` renamed
+        ``compute_seconds``: simulation plus reconstruction wall time per scene),
+        ``capture_seconds`` = M x exposure time, and the per-scene values under ``scenes``.
+    """
+    summary = {key: float(np.mean([metrics[key] for metrics in scene_metrics])) for key in SUMMARY_METRICS}
+    summary["compute_seconds"] = summary.pop("seconds")
+    summary["capture_seconds"] = num_patterns * exposure_ms / 1000.0
+    summary["scenes"] = [{key: metrics[key] for key in ("name", "mae", "median", "invalid_fraction", "exposure", "seconds")} for metrics in scene_metrics]
+    return summary
+
+
+def evaluate_methods(methods: list[Method], scenes, noise_scales, eval_seed: int, exposure_ms: float, progress: bool) -> None:
+    """Fill every method's ``evaluations`` with one summary per noise level (test scenes)."""
+    jobs = [(method, noise) for method in methods for noise in noise_scales]
+    for method, noise in tqdm(jobs, desc="evaluating", unit="set", disable=not progress):
+        settings = EvalSettings(method="woodham" if method.kind == "reference" else "ps", noise_scale=noise, seed=eval_seed)
+        patterns = method.patterns if isinstance(method.patterns, str) else torch.as_tensor(np.asarray(method.patterns, dtype=np.float32))
+        scene_metrics = [evaluate_scene(pixels, patterns, settings, index).metrics for index, pixels in enumerate(scenes)]
+        method.evaluations.append({"noise_scale": float(noise), **summarise(scene_metrics, method.num_patterns, exposure_ms)})
+
+
+def method_record(method: Method, out_dir: Path) -> dict:
+    """JSON record of one evaluated method (pattern file path relative to ``out_dir`` when inside it)."""
+    pattern_file = method.pattern_file
+    if pattern_file is not None:
+        try:
+            pattern_file = str(Path(pattern_file).resolve().relative_to(out_dir.resolve()))
+        except ValueError:
+            pass
+    info = {key: value for key, value in method.info.items() if key != "meta"}
+    return {"id": method.id, "kind": method.kind, "series": method.series, "label": method.label, "M": method.num_patterns,
+            "seed": method.seed, "pattern_file": pattern_file, "cost_seconds": method.cost_seconds, "info": info,
+            "evaluations": method.evaluations}
+
+
+def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> dict:
+    """Learn, search and evaluate every method; write results.json, report.md and charts.
+
+    Args:
+        config: the comparison.
+        out_dir: output folder (patterns/, results.json, report.md, *.png).
+        progress: show progress bars.
+
+    Returns:
+        The results dict written to ``results.json``: resolved ``config``, ``rig``, ``exposure_ms``,
+        scene names, ``methods`` (each with ``evaluations`` per noise level), ``skipped``,
+        ``summary`` (learned vs best heuristic, seed spread) and ``timings``.
+    """
+    from train.report import summary_tables, write_report
+
+    out_dir = Path(out_dir)
+    began = time.perf_counter()
+    rig = load_rig(config.rig)
+    exposure_ms, exposure_source = rig_exposure_ms(config.rig)
+    resolved = compare_config_to_dict(config)
+    write_json(out_dir / "config.json", resolved)
+    test_scenes = prepare_scenes(config.test_scenes, "test", rig, config.scene_size, config.scene_seed)
+    methods, skipped, timings = collect_methods(config, rig, out_dir / "patterns", progress)
+    start = time.perf_counter()
+    evaluate_methods(methods, test_scenes, config.noise_scales, config.eval_seed, exposure_ms, progress)
+    timings["evaluation_seconds"] = time.perf_counter() - start
+    results = {
+        "config": resolved,
+        "rig": rig.name,
+        "grid": [rig.rows, rig.cols],
+        "exposure_ms": exposure_ms,
+        "exposure_ms_source": exposure_source,
+        "default_noise": config.default_noise,
+        "noise_scales": [float(s) for s in config.noise_scales],
+        "pattern_counts": list(config.pattern_counts),
+        "test_scenes": [pixels.name for pixels in test_scenes],
+        "test_pixels": sum(pixels.num_pixels for pixels in test_scenes),
+        "methods": [method_record(method, out_dir) for method in methods],
+        "skipped": skipped,
+        "timings": timings,
+    }
+    results["summary"] = summary_tables(results)
+    results["timings"]["total_seconds"] = time.perf_counter() - began
+    report = write_report(results, out_dir, {method.id: method.patterns for method in methods if not isinstance(method.patterns, str)})
+    results["report"] = str(report)
+    write_json(out_dir / "results.json", results)
+    return results
+
+
+def run_demo(out_dir: Path, progress: bool = True, config_path: Path | None = None, steps: int | None = None) -> dict:
+    """The demo: synthesise the default scenes into ``out_dir/scenes`` and run the demo comparison.
+
+    Args:
+        out_dir: output folder: ``scenes/`` (train and test splits) and the comparison outputs.
+        progress: show progress bars.
+        config_path: comparison config (default ``configs/compare/demo.toml``).
+        steps: learning steps of every learned pattern set (None: the config's, per M).
+
+    Returns:
+        The comparison results (see ``run_compare``); prints where the report is.
+    """
+    from capture_sim.synth import write_scene_set
+
+    out_dir = Path(out_dir)
+    config = load_compare_config(config_path or CONFIG_DIR / "compare" / "demo.toml")
+    if steps is not None:
+        per_m = {count: {k: v for k, v in values.items() if k != "steps"} for count, values in config.learned_at.items()}
+        config = dataclasses.replace(config, learned={**config.learned, "steps": steps}, learned_at=per_m)
+    rig = load_rig(config.rig)
+    scene_dir = out_dir / "scenes"
+    if not (scene_dir / "index.json").exists():
+        write_scene_set(scene_dir, rig, config.scene_size[0], config.scene_size[1], config.scene_seed, progress=progress)
+    config = dataclasses.replace(config, train_scenes=(str(scene_dir / "train"),), test_scenes=(str(scene_dir / "test"),))
+    results = run_compare(config, out_dir, progress)
+    print(f"demo finished in {results['timings']['total_seconds']:.0f} s; report: {results['report']}")
+    return results

@@ -1,0 +1,426 @@
+"""The comparison report: summary tables, report.md and charts from ``run_compare``'s results.
+
+Everything here reads the results dict only (plus the pattern arrays for the pattern figure), so a
+report can be rebuilt from ``results.json``. Learned patterns with several seeds enter tables and
+charts as their mean over seeds; the seed spread has its own table.
+"""
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from capture_sim.atomic import write_text
+from patterns.families import FAMILIES
+from train.figures import plt, save_figure
+
+CHARTS = {
+    "mae_vs_M": "mae_vs_M.png",
+    "mae_vs_capture_time": "mae_vs_capture_time.png",
+    "mae_vs_compute_time": "mae_vs_compute_time.png",
+    "mae_vs_noise": "mae_vs_noise.png",
+    "patterns": "patterns.png",
+}
+"""Chart name -> file name in the output folder."""
+
+_ROW_METRICS = ("mae", "median", "under_10", "invalid_fraction", "exposure", "capture_seconds", "compute_seconds")
+_KIND_ORDER = {"learned": 0, "search": 1, "external": 2, "heuristic": 3, "reference": 4}
+_KIND_STYLE = {
+    "learned": dict(color="tab:red", marker="o", linewidth=2.5),
+    "search": dict(color="tab:purple", marker="D", linewidth=1.5),
+    "external": dict(color="tab:brown", marker="s", linewidth=1.5),
+    "heuristic": dict(marker=".", linewidth=1.0, alpha=0.8),
+    "reference": dict(color="black", marker="*", linewidth=1.0),
+}
+
+
+def _evaluation(method: dict, noise: float) -> dict | None:
+    for evaluation in method["evaluations"]:
+        if math.isclose(evaluation["noise_scale"], noise):
+            return evaluation
+    return None
+
+
+def aggregate_rows(results: dict, noise: float) -> list[dict]:
+    """One row per (series, M) at one noise level; learned seeds are averaged.
+
+    Returns:
+        rows with series, label, kind, M, seeds (count), cost_seconds (mean) and the means of
+        mae, median, under_10, invalid_fraction, exposure, capture_seconds, compute_seconds, plus
+        mae_std over seeds (0 for one seed); sorted by kind, then M, then MAE.
+    """
+    groups: dict = defaultdict(list)
+    for method in results["methods"]:
+        evaluation = _evaluation(method, noise)
+        if evaluation is not None:
+            groups[(method["series"], method["M"])].append((method, evaluation))
+    rows = []
+    for (series, count), members in groups.items():
+        first = members[0][0]
+        row = {"series": series, "kind": first["kind"], "M": count, "seeds": len(members),
+               "label": "learned" + (f" (mean of {len(members)} seeds)" if len(members) > 1 else "") if first["kind"] == "learned" else first["label"]}
+        for key in _ROW_METRICS:
+            row[key] = float(np.mean([evaluation[key] for _, evaluation in members]))
+        row["mae_std"] = float(np.std([evaluation["mae"] for _, evaluation in members]))
+        costs = [method["cost_seconds"] for method, _ in members if method["cost_seconds"] is not None]
+        row["cost_seconds"] = float(np.mean(costs)) if costs else None
+        rows.append(row)
+    rows.sort(key=lambda r: (_KIND_ORDER.get(r["kind"], 9), r["M"], r["mae"]))
+    return rows
+
+
+def summary_tables(results: dict) -> dict:
+    """The derived numbers of the report.
+
+    Returns:
+        dict with ``rows`` (``aggregate_rows`` at the default noise), ``learned_vs_heuristic``
+        (per M and noise: learned MAE, best heuristic family and MAE at default parameters, the
+        ratio learned / best heuristic, and the same against the best of heuristics and searches)
+        and ``seed_spread`` (per M and noise with several seeds: mean, std, min, max MAE).
+    """
+    comparisons, spread = [], []
+    for noise in results["noise_scales"]:
+        rows = aggregate_rows(results, noise)
+        for count in results["pattern_counts"]:
+            at_m = [row for row in rows if row["M"] == count]
+            learned = next((row for row in at_m if row["kind"] == "learned"), None)
+            heuristics = [row for row in at_m if row["kind"] == "heuristic"]
+            tuned = heuristics + [row for row in at_m if row["kind"] == "search"]
+            if learned is None or not heuristics:
+                continue
+            best = min(heuristics, key=lambda row: row["mae"])
+            best_tuned = min(tuned, key=lambda row: row["mae"])
+            comparisons.append({
+                "M": count, "noise_scale": noise, "learned_mae": learned["mae"],
+                "best_heuristic": best["series"], "best_heuristic_mae": best["mae"], "ratio": learned["mae"] / max(best["mae"], 1e-12),
+                "best_tuned": best_tuned["label"], "best_tuned_mae": best_tuned["mae"], "ratio_tuned": learned["mae"] / max(best_tuned["mae"], 1e-12),
+            })
+        by_m: dict = defaultdict(list)
+        for method in results["methods"]:
+            evaluation = _evaluation(method, noise)
+            if method["kind"] == "learned" and evaluation is not None:
+                by_m[method["M"]].append((method["seed"], evaluation["mae"]))
+        for count, values in sorted(by_m.items()):
+            if len(values) > 1:
+                maes = np.array([mae for _, mae in values])
+                spread.append({"M": count, "noise_scale": noise, "seeds": [seed for seed, _ in values], "maes": maes.tolist(),
+                               "mean": float(maes.mean()), "std": float(maes.std()), "min": float(maes.min()), "max": float(maes.max())})
+    comparisons.sort(key=lambda c: (c["M"], c["noise_scale"]))
+    spread.sort(key=lambda s: (s["M"], s["noise_scale"]))
+    return {"rows": aggregate_rows(results, results["default_noise"]), "learned_vs_heuristic": comparisons, "seed_spread": spread}
+
+
+# ---------------------------------------------------------------------------------------------
+# Charts
+# ---------------------------------------------------------------------------------------------
+
+
+def _caption(fig, text: str) -> None:
+    fig.text(0.5, -0.01, text, ha="center", va="top", fontsize=8, wrap=True)
+
+
+_HEURISTIC_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:cyan", "tab:olive", "tab:pink", "tab:gray", "gold", "teal")
+_OTHER_COLOURS = {"search": ("tab:purple", "darkviolet", "mediumorchid", "indigo"), "external": ("tab:brown", "peru", "saddlebrown", "rosybrown")}
+
+
+def _style(kind: str, series: str = "") -> dict:
+    """Line style of a method: fixed per kind, colour fixed per series in every chart."""
+    style = dict(_KIND_STYLE.get(kind, {}))
+    if kind == "heuristic":
+        order = list(FAMILIES)
+        index = order.index(series) if series in order else sum(map(ord, series))
+        style["color"] = _HEURISTIC_COLOURS[index % len(_HEURISTIC_COLOURS)]
+    elif kind in _OTHER_COLOURS:
+        colours = _OTHER_COLOURS[kind]
+        style["color"] = colours[sum(map(ord, series)) % len(colours)]
+    return style
+
+
+def _series(rows: list[dict]) -> dict:
+    series: dict = defaultdict(list)
+    for row in rows:
+        series[(row["kind"], row["label"] if row["kind"] != "learned" else "learned", row["series"])].append(row)
+    return {key: sorted(values, key=lambda r: r["M"]) for key, values in sorted(series.items(), key=lambda item: _KIND_ORDER.get(item[0][0], 9))}
+
+
+def chart_mae_vs_patterns(rows: list[dict], caption: str):
+    """MAE (deg) against M, one line per method; the OLAT reference as a horizontal line."""
+    fig, ax = plt.subplots(figsize=(9.0, 4.8))
+    for (kind, label, series), values in _series(rows).items():
+        if kind == "reference":
+            ax.axhline(values[0]["mae"], color="black", linestyle="--", linewidth=1, label=f"{values[0]['label']}")
+            continue
+        counts = [row["M"] for row in values]
+        maes = [row["mae"] for row in values]
+        errors = [row["mae_std"] for row in values]
+        ax.errorbar(counts, maes, yerr=errors if kind == "learned" else None, label=label, capsize=3, **_style(kind, series))
+    counts = sorted({row["M"] for row in rows if row["kind"] != "reference"})
+    ax.set_xticks(counts)
+    ax.set_xlabel("number of patterns M (images)")
+    ax.set_ylabel("mean angular error (deg)")
+    ax.set_title("Normal error against the number of patterns")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    _caption(fig, caption)
+    fig.tight_layout()
+    return fig
+
+
+def chart_mae_vs_cost(rows: list[dict], key: str, xlabel: str, title: str, caption: str):
+    """Scatter of MAE (deg) against a cost per method and M (log x axis), labelled by M."""
+    fig, ax = plt.subplots(figsize=(9.0, 4.8))
+    for (kind, label, series), values in _series(rows).items():
+        xs = [max(row[key], 1e-6) for row in values]
+        ys = [row["mae"] for row in values]
+        style = _style(kind, series)
+        style.pop("linewidth", None)
+        ax.plot(xs, ys, linestyle="none", markersize=7 if kind != "heuristic" else 9, label=label, **style)
+        if kind != "heuristic":  # heuristics share their M's positions: labels there would pile up
+            for x, y, row in zip(xs, ys, values):
+                ax.annotate(f"M={row['M']}", (x, y), textcoords="offset points", xytext=(4, 3), fontsize=6)
+    ax.set_xscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("mean angular error (deg)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    _caption(fig, caption)
+    fig.tight_layout()
+    return fig
+
+
+def chart_mae_vs_noise(results: dict, caption: str):
+    """MAE (deg) against noise level, one panel per M, one line per method."""
+    counts = results["pattern_counts"]
+    fig, axes = plt.subplots(1, len(counts), figsize=(4.2 * len(counts), 4.4), squeeze=False, sharey=True)
+    per_noise = {noise: aggregate_rows(results, noise) for noise in results["noise_scales"]}
+    noises = sorted(per_noise)
+    for ax, count in zip(axes[0], counts):
+        keys = {}
+        for noise in noises:
+            for row in per_noise[noise]:
+                if row["M"] == count or row["kind"] == "reference":
+                    keys.setdefault((row["kind"], row["label"] if row["kind"] != "learned" else "learned", row["series"]), []).append((noise, row["mae"]))
+        for (kind, label, series), points in sorted(keys.items(), key=lambda item: _KIND_ORDER.get(item[0][0], 9)):
+            style = _style(kind, series)
+            if kind == "reference":
+                style.update(linestyle="--", marker="*")
+            ax.plot([p[0] for p in points], [p[1] for p in points], label=label, **style)
+        ax.set_xscale("symlog", linthresh=min([n for n in noises if n > 0], default=1.0))
+        ax.set_xticks(noises)
+        ax.set_xticklabels([f"{n:g}" for n in noises])
+        ax.set_xlabel("noise scale (x rig noise variance)")
+        ax.set_title(f"M = {count}")
+        ax.grid(alpha=0.3)
+    axes[0, 0].set_ylabel("mean angular error (deg)")
+    legend = {}
+    for ax in axes[0]:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            legend.setdefault(label, handle)
+    fig.suptitle("Normal error against sensor noise (where methods fail)")
+    fig.tight_layout(rect=(0, 0.12, 1, 1))
+    fig.legend(list(legend.values()), list(legend), fontsize=7, loc="lower center", ncol=min(5, max(1, len(legend))), bbox_to_anchor=(0.5, 0.03))
+    fig.text(0.5, 0.0, caption, ha="center", va="bottom", fontsize=8, wrap=True)
+    return fig
+
+
+def pattern_strip(patterns: np.ndarray, gap: int = 1) -> np.ndarray:
+    """(R, M * (C + gap) - gap, 3) image of M patterns side by side, white gaps between them."""
+    count, rows, cols, _ = patterns.shape
+    strip = np.ones((rows, count * (cols + gap) - gap, 3), dtype=np.float32)
+    for index in range(count):
+        strip[:, index * (cols + gap): index * (cols + gap) + cols] = patterns[index]
+    return strip
+
+
+def chart_patterns(entries: list[tuple[str, np.ndarray]], caption: str):
+    """One row per pattern set: its M patterns as display set values (row 0 = top of the panel)."""
+    widest = max(patterns.shape[0] * (patterns.shape[2] + 1) for _, patterns in entries)
+    fig, axes = plt.subplots(len(entries), 1, figsize=(min(16, 2.0 + widest / 10), 0.95 * len(entries) + 0.8), squeeze=False)
+    for ax, (title, patterns) in zip(axes[:, 0], entries):
+        strip = pattern_strip(patterns)
+        canvas = np.ones((strip.shape[0], widest, 3), dtype=np.float32)
+        canvas[:, : strip.shape[1]] = strip
+        ax.imshow(canvas, interpolation="nearest")
+        ax.set_title(title, fontsize=8, loc="left")
+        ax.set_axis_off()
+    fig.suptitle("Pattern sets (display set values in [0, 1], before the display gamma)")
+    _caption(fig, caption)
+    fig.tight_layout()
+    return fig
+
+
+def pattern_entries(results: dict, rows: list[dict], pattern_sets: dict) -> list[tuple[str, np.ndarray]]:
+    """Pattern sets to draw: per M the first learned seed, the best heuristic, searches, externals."""
+    entries = []
+    for count in results["pattern_counts"]:
+        learned = sorted((m for m in results["methods"] if m["kind"] == "learned" and m["M"] == count), key=lambda m: m["seed"])
+        if learned and learned[0]["id"] in pattern_sets:
+            entries.append((f"learned, M = {count} (seed {learned[0]['seed']})", pattern_sets[learned[0]["id"]]))
+        heuristics = [row for row in rows if row["kind"] == "heuristic" and row["M"] == count]
+        if heuristics:
+            best = min(heuristics, key=lambda row: row["mae"])
+            method_id = f"heuristic_{best['series']}_M{count}"
+            if method_id in pattern_sets:
+                entries.append((f"best heuristic, M = {count}: {best['series']} ({best['mae']:.1f} deg)", pattern_sets[method_id]))
+        for method in results["methods"]:
+            if method["kind"] in ("search", "external") and method["M"] == count and method["id"] in pattern_sets:
+                entries.append((f"{method['kind']}: {method['label']}, M = {count}", pattern_sets[method["id"]]))
+    return entries
+
+
+# ---------------------------------------------------------------------------------------------
+# report.md
+# ---------------------------------------------------------------------------------------------
+
+
+def _fmt(value, digits: int = 2) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float) and not math.isfinite(value):
+        return "-"
+    return f"{value:.{digits}f}"
+
+
+def _table(header: list[str], lines: list[list[str]]) -> str:
+    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    out += ["| " + " | ".join(line) + " |" for line in lines]
+    return "\n".join(out)
+
+
+def _measurement_caption(results: dict) -> str:
+    default = results["default_noise"]
+    return (
+        f"Measured on {len(results['test_scenes'])} held-out test scenes ({results['test_pixels']} masked pixels; "
+        f"{', '.join(results['test_scenes'])}), rig {results['rig']} ({results['grid'][0]} x {results['grid'][1]} superpixels). "
+        "Captures are simulated from the OLAT stacks (display gamma and backlight, Poisson-Gaussian noise at the given scale "
+        "times the rig's noise variances, clipping, quantisation) with auto exposure per scene, then reconstructed with the "
+        "analytic photometric stereo (the OLAT reference: Woodham least squares on all K images). MAE and median are angular "
+        "normal errors in degrees over the mask, averaged over scenes (each scene weighs the same). Capture time = M x "
+        f"{results['exposure_ms']:g} ms ({results['exposure_ms_source']}). Compute time = wall seconds per scene of simulation plus "
+        "reconstruction on this machine's CPU. Exposure = mean auto-exposure gain. Cost = wall seconds spent learning "
+        f"(training scenes only) or searching. Learning and searches used noise scale {default:g}."
+    )
+
+
+def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
+    """Write ``report.md`` and the charts (``CHARTS``) into ``out_dir``.
+
+    Args:
+        results: ``run_compare`` results (with ``summary``).
+        out_dir: output folder.
+        pattern_sets: method id -> (M, R, C, 3) patterns, for the pattern figure.
+
+    Returns:
+        Path of report.md.
+    """
+    out_dir = Path(out_dir)
+    summary = results.get("summary") or summary_tables(results)
+    rows = summary["rows"]
+    default = results["default_noise"]
+    caption = _measurement_caption(results)
+    short = f"{len(results['test_scenes'])} test scenes, noise scale {default:g}, analytic PS (OLAT: Woodham); MAE averaged over scenes."
+
+    save_figure(chart_mae_vs_patterns(rows, f"{short} Learned: mean over seeds, bars = std."), out_dir / CHARTS["mae_vs_M"])
+    save_figure(chart_mae_vs_cost(rows, "capture_seconds", f"capture time (s) = M x {results['exposure_ms']:g} ms", "Accuracy against capture time",
+                                  short), out_dir / CHARTS["mae_vs_capture_time"])
+    save_figure(chart_mae_vs_cost(rows, "compute_seconds", "compute time per scene (s): simulation + reconstruction, CPU",
+                                  "Speed-accuracy: normal error against reconstruction time", short), out_dir / CHARTS["mae_vs_compute_time"])
+    save_figure(chart_mae_vs_noise(results, f"{len(results['test_scenes'])} test scenes; analytic PS (OLAT: Woodham); noise scale multiplies the rig's noise variances."),
+                out_dir / CHARTS["mae_vs_noise"])
+    entries = pattern_entries(results, rows, pattern_sets)
+    if entries:
+        save_figure(chart_patterns(entries, "Each row: one pattern set, patterns left to right; superpixel grid as on the panel."), out_dir / CHARTS["patterns"])
+
+    lines = ["# Pattern comparison", "", caption, ""]
+    counts = results["pattern_counts"]
+    series_rows: dict = defaultdict(dict)
+    labels = {}
+    for row in rows:
+        if row["kind"] == "reference":
+            continue
+        series_rows[row["series"]][row["M"]] = row
+        labels[row["series"]] = (row["kind"], row["label"])
+    ordered = sorted(series_rows, key=lambda s: (_KIND_ORDER.get(labels[s][0], 9), labels[s][1]))
+    reference = next((row for row in rows if row["kind"] == "reference"), None)
+
+    def pivot(key: str, digits: int) -> str:
+        body = [[labels[s][1], labels[s][0]] + [_fmt(series_rows[s][m][key], digits) if m in series_rows[s] else "-" for m in counts] for s in ordered]
+        return _table(["method", "kind"] + [f"M = {m}" for m in counts], body)
+
+    lines += [f"## Accuracy and cost at noise scale {default:g}", "",
+              "Mean angular error (deg), method x M (lower is better):", "", pivot("mae", 2), ""]
+    if reference is not None:
+        lines += [f"Reference: {reference['label']}: MAE {reference['mae']:.2f} deg, median {reference['median']:.2f} deg, "
+                  f"capture {reference['capture_seconds']:.1f} s, compute {reference['compute_seconds']:.2f} s per scene.", ""]
+    lines += ["Median angular error (deg):", "", pivot("median", 2), "",
+              "Capture time (s, M x exposure time):", "", pivot("capture_seconds", 2), "",
+              "Compute time (s per scene, simulation + reconstruction):", "", pivot("compute_seconds", 3), ""]
+    for count in counts:
+        at_m = [row for row in rows if row["M"] == count]
+        if not at_m:
+            continue
+        body = [[row["label"], row["kind"], _fmt(row["mae"]), _fmt(row["median"]), _fmt(100 * row["under_10"], 1), _fmt(100 * row["invalid_fraction"], 1),
+                 _fmt(row["capture_seconds"], 2), _fmt(row["compute_seconds"], 3), _fmt(row["exposure"], 3), _fmt(row["cost_seconds"], 0)] for row in at_m]
+        lines += [f"### M = {count}", "", _table(["method", "kind", "MAE (deg)", "median (deg)", "< 10 deg (%)", "invalid (%)", "capture (s)",
+                                                 "compute (s/scene)", "exposure", "cost (s)"], body), ""]
+
+    lines += ["## MAE against noise level", "", "Mean angular error (deg) at each noise scale (x the rig's noise variances):", ""]
+    noises = results["noise_scales"]
+    per_noise = {noise: {(row["series"], row["M"]): row for row in aggregate_rows(results, noise)} for noise in noises}
+    body = []
+    for row in sorted(rows, key=lambda r: (r["M"], _KIND_ORDER.get(r["kind"], 9), r["label"])):
+        key = (row["series"], row["M"])
+        body.append([row["label"], str(row["M"])] + [_fmt(per_noise[n][key]["mae"]) if key in per_noise[n] else "-" for n in noises])
+    lines += [_table(["method", "M"] + [f"noise {n:g}" for n in noises], body), ""]
+
+    comparisons = summary["learned_vs_heuristic"]
+    if comparisons:
+        lines += ["## How the advantage of learned patterns changes with noise", "",
+                  "Ratio = learned MAE / best heuristic MAE (< 1: learned is better). Best heuristic: the family with the lowest MAE at "
+                  "its default parameters at that M and noise; 'tuned' also counts the NLopt-searched families.", ""]
+        body = [[str(c["M"]), f"{c['noise_scale']:g}", _fmt(c["learned_mae"]), f"{c['best_heuristic']} ({_fmt(c['best_heuristic_mae'])})",
+                 _fmt(c["ratio"], 3), f"{c['best_tuned']} ({_fmt(c['best_tuned_mae'])})", _fmt(c["ratio_tuned"], 3)] for c in comparisons]
+        lines += [_table(["M", "noise", "learned MAE", "best heuristic (MAE)", "ratio", "best tuned (MAE)", "ratio (tuned)"], body), ""]
+
+    if summary["seed_spread"]:
+        lines += ["## Seed spread of learned patterns", "", "Test MAE (deg) of patterns learned with different seeds (same config otherwise):", ""]
+        body = [[str(s["M"]), f"{s['noise_scale']:g}", ", ".join(map(str, s["seeds"])), _fmt(s["mean"]), _fmt(s["std"]), _fmt(s["min"]), _fmt(s["max"])]
+                for s in summary["seed_spread"]]
+        lines += [_table(["M", "noise", "seeds", "mean", "std", "min", "max"], body), ""]
+
+    searches = [m for m in results["methods"] if m["kind"] == "search"]
+    if searches:
+        lines += ["## NLopt searches", "", "Training-scene objective (fixed pixel subset and noise draw), then test MAE at the default noise:", ""]
+        body = []
+        for method in searches:
+            info = method["info"]
+            test = _evaluation(method, default)
+            trace = Path(info["trace_png"])
+            try:
+                trace = trace.resolve().relative_to(out_dir.resolve())
+            except ValueError:
+                pass
+            body.append([method["label"], str(method["M"]), str(info["evaluations"]), _fmt(info["start_mae"]), _fmt(info["best_mae"]),
+                         _fmt(test["mae"]) if test else "-", _fmt(method["cost_seconds"], 0), info["stop_reason"], f"[trace]({trace.as_posix()})"])
+        lines += [_table(["search", "M", "evaluations", "start (train)", "best (train)", "test MAE", "cost (s)", "stop", "chart"], body), ""]
+
+    if results["skipped"]:
+        lines += ["## Skipped", ""] + [f"- {s['method']} at M = {s['M']}: {s['reason']}" for s in results["skipped"]] + [""]
+
+    timings = results["timings"]
+    lines += ["## Charts", ""]
+    chart_titles = {"mae_vs_M": "MAE against M", "mae_vs_capture_time": "MAE against capture time", "mae_vs_compute_time": "Speed-accuracy (compute time)",
+                    "mae_vs_noise": "MAE against noise level", "patterns": "The pattern sets"}
+    for name, file_name in CHARTS.items():
+        if (out_dir / file_name).exists():
+            lines += [f"### {chart_titles[name]}", "", f"![{chart_titles[name]}]({file_name})", ""]
+    lines += ["## Run", "",
+              f"Learning {timings.get('learning_seconds', 0):.0f} s, searches {timings.get('search_seconds', 0):.0f} s, "
+              f"evaluation {timings.get('evaluation_seconds', 0):.0f} s. All numbers: `results.json`; resolved config: `config.json`; "
+              "pattern files: `patterns/`.", ""]
+    path = out_dir / "report.md"
+    write_text(path, "\n".join(lines))
+    return path

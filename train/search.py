@@ -1,0 +1,504 @@
+"""NLopt search of a heuristic family's parameters (`displex search`).
+
+The objective is the mean angular error (degrees) of the analytic photometric stereo on the
+training scenes, under patterns generated from the family's parameter vector:
+    vector -> Family.generate (sharpness ``config.sharpness``) -> capture_scene (display, noise,
+    clipping, quantisation, auto exposure) -> solve_ps -> mean angle to the true normals.
+It is deterministic: every scene keeps one fixed subset of pixels (``pixels_per_scene``) and one
+fixed noise draw (generator seeded with ``config.seed * 1000 + scene index``) for every
+evaluation, so NLopt compares patterns, not noise draws. Gradient-based algorithms (LD_*) get the
+gradient of exactly this value by autograd (``solve_ps`` has exact implicit gradients); the angle
+is acos of the clamped cosine, as in training (``train.learn.normal_loss``), so the value is a
+differentiable surrogate of the MAE that differs from it by < 0.1 degree.
+
+Search generates patterns at a low edge sharpness (4 per cell instead of the families' 40): at 40,
+split and block edges are binary and their positions get no gradient, and a derivative-free search
+sees a staircase. The written pattern file holds the patterns exactly as evaluated (same sharpness,
+soft edges), so its recorded MAE belongs to the file.
+
+NLopt may stop by raising instead of returning (for example ``nlopt.RoundoffLimited`` from
+LN_BOBYQA); the best point seen is kept inside the objective and returned in every case.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import nlopt
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from capture_sim.atomic import write_json, write_text
+from capture_sim.errors import InputError
+from capture_sim.rig import DEFAULT_RIG, load_rig
+from patterns.families import PRESETS, default_vector, get_family
+from patterns.io import save_patterns
+from reconstruct.photometric_stereo import PSConfig, solve_ps
+from train.capture import capture_scene
+from train.config_io import config_to_dict
+from train.learn import normal_loss
+from train.scene_pixels import ScenePixels, scene_pixels
+from train.scene_sets import resolve_scenes
+
+ALGORITHMS = ("LN_BOBYQA", "LN_COBYLA", "LN_SBPLX", "GN_CRS2_LM", "GN_ESCH", "GN_DIRECT_L", "LD_MMA", "LD_LBFGS")
+"""NLopt algorithms `displex search` accepts: local derivative-free (LN), global (GN), gradient-based (LD)."""
+
+GRADIENT_ALGORITHMS = frozenset(name for name in ALGORITHMS if name.startswith("LD_"))
+
+_RESULT_NAMES = {
+    nlopt.SUCCESS: "success",
+    nlopt.STOPVAL_REACHED: "stopval reached",
+    nlopt.FTOL_REACHED: "ftol reached",
+    nlopt.XTOL_REACHED: "xtol reached",
+    nlopt.MAXEVAL_REACHED: "maxeval reached",
+    nlopt.MAXTIME_REACHED: "maxtime reached",
+}
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    """Settings of one NLopt search over a heuristic family (TOML files in configs/search/)."""
+
+    family: str = "tri_complementary"
+    """Family to search (``patterns.families.FAMILIES``)."""
+    num_patterns: int = 2
+    """M, the number of patterns."""
+    algorithm: str = "LN_BOBYQA"
+    """NLopt algorithm, one of ``ALGORITHMS``."""
+    maxeval: int = 60
+    """Largest number of objective evaluations (the start point counts as the first)."""
+    maxtime: float | None = None
+    """Wall-clock limit of the search in seconds; None or 0 = no limit."""
+    xtol_rel: float = 1e-4
+    """Stop when a step changes every parameter by less than this fraction of its value."""
+    ftol_abs: float = 1e-3
+    """Stop when a step changes the objective by less than this many degrees."""
+    initial_step: float = 0.1
+    """First step of local algorithms, as a fraction of each parameter's bound range."""
+    seed: int = 0
+    """Seed of NLopt's random choices (``nlopt.srand``), the pixel subsets and the noise draws."""
+    start: str = "default"
+    """Start point: the family's preset ``"default"`` (lo 0, hi 1) or ``"ddps"`` (published)."""
+    scenes: tuple[str, ...] = ()
+    """Scene files or folders the search optimises on; empty = the default synthetic train split."""
+    noise_scale: float = 1.0
+    """Multiplier of the rig's noise variances (0 = noise-free, unquantised)."""
+    rig: str = DEFAULT_RIG
+    """Rig preset or TOML path."""
+    scene_size: tuple[int, int] = (128, 153)
+    """Image size of the default synthetic scenes."""
+    scene_seed: int = 0
+    """Seed of the default synthetic scenes."""
+    sharpness: float = 4.0
+    """Edge slope (1/cells) of split and block edges during the search and in the written file;
+    low enough for useful gradients and a smooth objective (the families' default is 40)."""
+    pixels_per_scene: int = 3000
+    """Fixed random pixels per scene in the objective (0 = every masked pixel)."""
+
+    def __post_init__(self):
+        get_family(self.family)
+        if self.algorithm not in ALGORITHMS:
+            raise InputError(f"unknown NLopt algorithm {self.algorithm!r}; algorithms: {', '.join(ALGORITHMS)}")
+        if self.start not in PRESETS:
+            raise InputError(f"start must be one of {', '.join(PRESETS)}, got {self.start!r}")
+        if self.maxeval < 1:
+            raise InputError(f"maxeval must be >= 1, got {self.maxeval}")
+        if self.maxtime is not None and not self.maxtime >= 0:
+            raise InputError(f"maxtime must be >= 0 seconds (0 = no limit), got {self.maxtime}")
+        if self.xtol_rel < 0 or self.ftol_abs < 0 or not 0 < self.initial_step <= 1:
+            raise InputError("xtol_rel and ftol_abs must be >= 0 and initial_step in (0, 1]")
+        if self.noise_scale < 0 or self.pixels_per_scene < 0:
+            raise InputError("noise_scale and pixels_per_scene must be >= 0")
+        if not self.sharpness > 0 or not math.isfinite(self.sharpness):
+            raise InputError(f"sharpness must be positive and finite, got {self.sharpness}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Generic bounded minimisation with NLopt (no knowledge of patterns: tests drive it directly)
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class Minimum:
+    """Outcome of ``minimise``.
+
+    Attributes:
+        best_x: (P,) float64 best point seen.
+        best_value: its objective value.
+        start_value: objective value at the start point.
+        history: [(x (P,), value)] of every evaluation in order (the start first).
+        stop_reason: why the search ended (NLopt's result, or the exception NLopt raised).
+        seconds: wall time of the whole search, start evaluation included.
+    """
+
+    best_x: np.ndarray
+    best_value: float
+    start_value: float
+    history: list
+    stop_reason: str
+    seconds: float
+
+
+class _Tracker:
+    """The NLopt callback: evaluates, records, keeps the best point, enforces the budget.
+
+    Exceptions never cross NLopt's C code (some algorithms, e.g. GN_CRS2_LM, mangle them): the
+    callback stores the exception, asks NLopt to stop and returns the best value so far.
+    """
+
+    def __init__(self, evaluate, maxeval: int, low: np.ndarray, high: np.ndarray, on_evaluation):
+        self.evaluate = evaluate
+        self.low, self.high = low, high
+        self.maxeval = maxeval
+        self.on_evaluation = on_evaluation
+        self.history: list = []
+        self.best_x: np.ndarray | None = None
+        self.best_value = math.inf
+        self.error: BaseException | None = None
+        self.optimiser = None
+        self._cache: dict = {}
+
+    def __call__(self, x: np.ndarray, grad: np.ndarray) -> float:
+        # Some algorithms step a rounding error outside the bounds; the generators reject that.
+        x = np.clip(np.asarray(x, dtype=np.float64), self.low, self.high)
+        key = x.tobytes()
+        need_gradient = grad.size > 0
+        cached = self._cache.get(key)
+        if cached is not None and (cached[1] is not None or not need_gradient):
+            value, gradient = cached
+        elif len(self.history) >= self.maxeval or self.error is not None:
+            self._stop()
+            grad[:] = 0.0
+            return self.best_value
+        else:
+            try:
+                value, gradient = self.evaluate(x.copy(), need_gradient)
+            except Exception as err:  # noqa: BLE001  (re-raised or reported after NLopt returns)
+                self.error = err
+                self._stop()
+                grad[:] = 0.0
+                return self.best_value
+            value = float(value)
+            if not math.isfinite(value):
+                self.error = FloatingPointError(f"the objective returned {value} at {x.tolist()}")
+                self._stop()
+                grad[:] = 0.0
+                return self.best_value
+            self._cache = {key: (value, gradient)}
+            self.history.append((x, value))
+            if value < self.best_value or self.best_x is None:
+                self.best_value, self.best_x = value, x
+            self.on_evaluation(len(self.history) - 1, x, value, self.best_value)
+        if need_gradient:
+            grad[:] = gradient
+        return value
+
+    def _stop(self) -> None:
+        if self.optimiser is not None:
+            self.optimiser.force_stop()
+
+
+STOPPING_ERRORS = (nlopt.RoundoffLimited, nlopt.ForcedStop, RuntimeError)
+"""What NLopt raises when it stops early; the best point seen is still the answer."""
+
+
+def minimise(
+    evaluate: Callable[[np.ndarray, bool], tuple[float, np.ndarray | None]],
+    start: np.ndarray,
+    low: np.ndarray,
+    high: np.ndarray,
+    algorithm: str,
+    maxeval: int,
+    maxtime: float | None = None,
+    xtol_rel: float = 1e-4,
+    ftol_abs: float = 1e-3,
+    initial_step: float = 0.1,
+    seed: int = 0,
+    on_evaluation: Callable[[int, np.ndarray, float, float], None] | None = None,
+) -> Minimum:
+    """Minimise ``evaluate`` within bounds with an NLopt algorithm, robust to early stops.
+
+    The start point is evaluated first (so every algorithm, global ones included, reports the
+    start value and never returns anything worse); NLopt's own request for it is served from a
+    cache. NLopt exceptions that mean "stopped early" (``STOPPING_ERRORS``, or
+    ``nlopt.RoundoffLimited`` / ``nlopt.ForcedStop`` raised by ``evaluate`` itself) end the search
+    with the best point seen; any other exception from ``evaluate`` is re-raised.
+
+    Args:
+        evaluate: (x (P,) float64, need_gradient) -> (value, (P,) gradient or None).
+        start: (P,) start point within the bounds.
+        low, high: (P,) finite bounds.
+        algorithm: one of ``ALGORITHMS``.
+        maxeval: largest number of evaluations (the start included), >= 1.
+        maxtime: wall-clock limit in seconds; None or 0 = no limit.
+        xtol_rel, ftol_abs: NLopt's relative parameter and absolute objective tolerances.
+        initial_step: first step as a fraction of each bound range (local algorithms).
+        seed: ``nlopt.srand`` seed (population-based and random algorithms).
+        on_evaluation: called after every new evaluation with (index, x, value, best value so far).
+
+    Returns:
+        Minimum with the best point, the start value and the whole history.
+    """
+    if algorithm not in ALGORITHMS:
+        raise InputError(f"unknown NLopt algorithm {algorithm!r}; algorithms: {', '.join(ALGORITHMS)}")
+    if maxeval < 1:
+        raise InputError(f"maxeval must be >= 1, got {maxeval}")
+    start, low, high = (np.asarray(v, dtype=np.float64).ravel() for v in (start, low, high))
+    if not (start.shape == low.shape == high.shape) or start.size == 0:
+        raise InputError(f"start and bounds must have one equal non-zero length, got {start.size}, {low.size}, {high.size}")
+    if not (np.isfinite(low).all() and np.isfinite(high).all() and (low <= high).all()):
+        raise InputError("bounds must be finite with low <= high")
+    if ((start < low) | (start > high)).any():
+        raise InputError("the start point lies outside the bounds")
+    begun = time.perf_counter()
+    tracker = _Tracker(evaluate, int(maxeval), low, high, on_evaluation or (lambda *_: None))
+    # Gradient algorithms ask for the start's gradient first: compute it now so the cache serves it.
+    tracker(start.copy(), np.empty(start.size if algorithm in GRADIENT_ALGORITHMS else 0))
+    if tracker.error is not None:
+        raise tracker.error
+    stop_reason = "maxeval reached"
+    if maxeval > 1:
+        nlopt.srand(int(seed))
+        optimiser = nlopt.opt(getattr(nlopt, algorithm), start.size)
+        tracker.optimiser = optimiser
+        optimiser.set_lower_bounds(low)
+        optimiser.set_upper_bounds(high)
+        optimiser.set_min_objective(tracker)
+        optimiser.set_maxeval(int(maxeval))
+        if maxtime:
+            optimiser.set_maxtime(max(1e-3, maxtime - (time.perf_counter() - begun)))
+        optimiser.set_xtol_rel(xtol_rel)
+        optimiser.set_ftol_abs(ftol_abs)
+        # Zero-width bounds would give a zero step, which NLopt rejects.
+        optimiser.set_initial_step(np.maximum(initial_step * (high - low), 1e-9))
+        try:
+            optimiser.optimize(start.copy())
+            stop_reason = _RESULT_NAMES.get(optimiser.last_optimize_result(), f"nlopt result {optimiser.last_optimize_result()}")
+        except STOPPING_ERRORS as err:
+            stop_reason = f"stopped: {type(err).__name__} {err}".strip()
+        except ValueError as err:
+            raise InputError(f"NLopt rejected the search problem ({algorithm}, {start.size} parameters): {err}") from None
+        if tracker.error is not None:
+            if not isinstance(tracker.error, (nlopt.RoundoffLimited, nlopt.ForcedStop)):
+                raise tracker.error
+            stop_reason = f"stopped: {type(tracker.error).__name__} {tracker.error}".strip()
+        elif len(tracker.history) >= maxeval:
+            stop_reason = "maxeval reached"
+    return Minimum(
+        best_x=tracker.best_x,
+        best_value=tracker.best_value,
+        start_value=tracker.history[0][1],
+        history=tracker.history,
+        stop_reason=stop_reason,
+        seconds=time.perf_counter() - begun,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# The pattern objective
+# ---------------------------------------------------------------------------------------------
+
+
+def prepare_scenes(paths, split: str, rig, size: tuple[int, int], seed: int) -> list[ScenePixels]:
+    """Scenes with true normals, from files/folders or the default synthetic ``split``."""
+    scenes = [scene_pixels(scene, rig, require_normals=True) for scene in resolve_scenes(tuple(paths), split, rig, tuple(size), seed)]
+    if not scenes:
+        raise InputError("no scenes to search on")
+    return scenes
+
+
+class PatternObjective:
+    """Mean angular error (degrees) over scenes of patterns generated from a family's vector.
+
+    Args:
+        family: family name.
+        num_patterns: M.
+        scenes: prepared scenes with true normals.
+        rows, cols: display grid R x C.
+        noise_scale: multiplier of the rig's noise variances.
+        sharpness: edge slope used to generate patterns (1/cells).
+        pixels_per_scene: fixed random pixel subset per scene (0 = all pixels).
+        seed: seed of the pixel subsets and the noise draws.
+        ps_config: solver settings.
+    """
+
+    def __init__(self, family: str, num_patterns: int, scenes: list[ScenePixels], rows: int, cols: int,
+                 noise_scale: float = 1.0, sharpness: float = 4.0, pixels_per_scene: int = 3000, seed: int = 0,
+                 ps_config: PSConfig = PSConfig()):
+        self.family = get_family(family)
+        self.family.check(num_patterns, rows, cols)
+        self.num_patterns, self.rows, self.cols = num_patterns, rows, cols
+        self.scenes, self.noise_scale, self.sharpness, self.seed, self.ps_config = scenes, noise_scale, sharpness, seed, ps_config
+        self.columns = []
+        for index, pixels in enumerate(scenes):
+            if pixels_per_scene and pixels.num_pixels > pixels_per_scene:
+                chooser = torch.Generator().manual_seed(seed * 1000 + index)
+                self.columns.append(torch.randperm(pixels.num_pixels, generator=chooser)[:pixels_per_scene].sort().values)
+            else:
+                self.columns.append(None)
+
+    def patterns(self, vector: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """(M, R, C, 3) float32 patterns of a (P,) parameter vector (differentiable in a tensor)."""
+        values = torch.as_tensor(vector, dtype=torch.float64)
+        return self.family.generate(values, self.num_patterns, self.rows, self.cols, self.sharpness).float()
+
+    def value(self, patterns: torch.Tensor) -> torch.Tensor:
+        """Scalar mean over scenes of the mean angle (degrees) over each scene's pixel subset."""
+        losses = []
+        for index, (pixels, columns) in enumerate(zip(self.scenes, self.columns)):
+            noise = torch.Generator().manual_seed(self.seed * 1000 + index)
+            capture = capture_scene(pixels, patterns, self.noise_scale, "auto", noise, columns)
+            points = pixels.points if columns is None else pixels.points[columns]
+            truth = pixels.normal if columns is None else pixels.normal[columns]
+            result = solve_ps(capture.captures, capture.emission, points, pixels.lights(), pixels.rig.falloff, self.ps_config)
+            losses.append(normal_loss(result.normal, truth, "angular"))
+        return torch.rad2deg(torch.stack(losses).mean())
+
+    def __call__(self, vector: np.ndarray, need_gradient: bool) -> tuple[float, np.ndarray | None]:
+        """(value in degrees, (P,) gradient or None) at a (P,) float64 vector."""
+        if not need_gradient:
+            with torch.no_grad():
+                return float(self.value(self.patterns(vector))), None
+        values = torch.tensor(vector, dtype=torch.float64, requires_grad=True)
+        value = self.value(self.patterns(values))
+        (gradient,) = torch.autograd.grad(value, values, allow_unused=True)
+        gradient = np.zeros(values.shape) if gradient is None else gradient.numpy()
+        # A non-finite gradient must not reach NLopt: treat that point as flat.
+        return float(value.detach()), np.nan_to_num(gradient, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# The command
+# ---------------------------------------------------------------------------------------------
+
+
+def trace_path(out: Path) -> Path:
+    """``<out stem>.trace.csv`` next to the pattern file."""
+    return out.with_name(out.stem + ".trace.csv")
+
+
+def trace_csv(names: list[str], history: list) -> str:
+    """CSV text: index, every parameter by name, mae, best_so_far (one row per evaluation)."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(["index", *names, "mae", "best_so_far"])
+    best = math.inf
+    for index, (x, value) in enumerate(history):
+        best = min(best, value)
+        writer.writerow([index, *(repr(float(v)) for v in x), repr(float(value)), repr(float(best))])
+    return buffer.getvalue()
+
+
+def trace_figure(history: list, title: str, caption: str):
+    """Figure of the objective (degrees) and the best so far against the evaluation index."""
+    from train.figures import plt
+
+    values = np.array([value for _, value in history])
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    ax.plot(np.arange(values.size), values, "o", markersize=3, alpha=0.6, label="evaluation")
+    ax.plot(np.arange(values.size), np.minimum.accumulate(values), "-", linewidth=2, label="best so far")
+    ax.set_xlabel("evaluation index")
+    ax.set_ylabel("mean angular error (deg)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.text(0.5, -0.02, caption, ha="center", va="top", fontsize=8, wrap=True)
+    fig.tight_layout()
+    return fig
+
+
+def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, progress: bool = True) -> dict:
+    """Search a family's parameters with NLopt and write the best patterns.
+
+    Writes ``out`` (pattern .npz, patterns exactly as evaluated, meta with the family, algorithm,
+    parameters, start and best MAE, evaluations), ``<out stem>.trace.csv`` (every evaluation),
+    ``<out stem>.trace.png`` (objective against evaluation index) and ``<out stem>.config.json``;
+    TensorBoard scalars under ``logdir`` if given.
+
+    Args:
+        config: search settings.
+        out: output pattern file (.npz).
+        logdir: TensorBoard folder, or None.
+        progress: show a tqdm bar over evaluations.
+
+    Returns:
+        The pattern file's meta dict plus ``pattern_file``, ``trace_csv`` and ``trace_png`` paths.
+    """
+    from train.figures import save_figure
+
+    out = Path(out)
+    rig = load_rig(config.rig)
+    family = get_family(config.family)
+    family.check(config.num_patterns, rig.rows, rig.cols)
+    parameters = family.parameters(config.num_patterns, rig.rows, rig.cols, config.start, config.seed)
+    names = [p.name for p in parameters]
+    low, high = family.bounds(config.num_patterns, rig.rows, rig.cols)
+    start = default_vector(config.family, config.num_patterns, rig.rows, rig.cols, config.start, config.seed).numpy()
+    scenes = prepare_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed)
+    objective = PatternObjective(config.family, config.num_patterns, scenes, rig.rows, rig.cols, config.noise_scale,
+                                 config.sharpness, config.pixels_per_scene, config.seed)
+    writer = None
+    if logdir is not None:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(logdir))
+    bar = tqdm(total=config.maxeval, desc=f"search {config.family} M={config.num_patterns} {config.algorithm}", unit="eval", disable=not progress)
+    trace = trace_path(out)
+    seen: list = []
+
+    def on_evaluation(index, x, value, best):
+        seen.append((x, value))
+        bar.update(1)
+        bar.set_postfix(mae=f"{value:.2f}", best=f"{best:.2f}")
+        if writer is not None:
+            writer.add_scalar("search/mae_deg", value, index)
+            writer.add_scalar("search/best_mae_deg", best, index)
+        if index % 10 == 9:
+            write_text(trace, trace_csv(names, seen))
+
+    try:
+        found = minimise(objective, start, low, high, config.algorithm, config.maxeval, config.maxtime, config.xtol_rel,
+                         config.ftol_abs, config.initial_step, config.seed, on_evaluation)
+    finally:
+        bar.close()
+        if writer is not None:
+            writer.close()
+    write_text(trace, trace_csv(names, found.history))
+    best_patterns = objective.patterns(found.best_x).numpy()
+    resolved = config_to_dict(config)
+    meta = {
+        "family": config.family,
+        "algorithm": config.algorithm,
+        "made_by": "displex search",
+        "rig": rig.name,
+        "num_patterns": config.num_patterns,
+        "parameter_names": names,
+        "parameters": {name: float(value) for name, value in zip(names, found.best_x)},
+        "start_parameters": {name: float(value) for name, value in zip(names, start)},
+        "start_mae": found.start_value,
+        "best_mae": found.best_value,
+        "evaluations": len(found.history),
+        "stop_reason": found.stop_reason,
+        "seconds": found.seconds,
+        "sharpness": config.sharpness,
+        "objective": (
+            f"mean over {len(scenes)} training scenes of the mean angular error (deg) of solve_ps over "
+            f"{'all' if not config.pixels_per_scene else f'at most {config.pixels_per_scene} fixed'} pixels per scene, "
+            f"noise scale {config.noise_scale:g}, fixed noise seed"
+        ),
+        "scenes": [pixels.name for pixels in scenes],
+        "config": resolved,
+    }
+    save_patterns(out, best_patterns, meta)
+    write_json(out.with_name(out.stem + ".config.json"), resolved)
+    chart = out.with_name(out.stem + ".trace.png")
+    caption = (f"{meta['objective']}; {len(found.history)} evaluations, stop: {found.stop_reason}; "
+               f"start {found.start_value:.2f} deg, best {found.best_value:.2f} deg")
+    save_figure(trace_figure(found.history, f"NLopt {config.algorithm}: {config.family}, M = {config.num_patterns}", caption), chart)
+    return {**meta, "pattern_file": str(out), "trace_csv": str(trace), "trace_png": str(chart)}
