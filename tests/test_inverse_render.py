@@ -368,6 +368,39 @@ def test_fit_on_degenerate_captures_stays_finite(small_scene):
         assert bool(torch.isfinite(value).all())
 
 
+def _stability_patterns(case, rig):
+    generator = torch.Generator().manual_seed(5)
+    if case == "one_pattern":
+        return torch.rand(1, rig.rows, rig.cols, 3, generator=generator)
+    if case == "identical_patterns":
+        return torch.rand(1, rig.rows, rig.cols, 3, generator=generator).expand(2, -1, -1, -1).contiguous()
+    if case == "all_black":
+        return torch.zeros(3, rig.rows, rig.cols, 3)
+    return torch.rand(4, rig.rows, rig.cols, 3, generator=generator)  # "strong_noise": random patterns, 10x noise
+
+
+@pytest.mark.parametrize("case", ["one_pattern", "identical_patterns", "all_black", "strong_noise"])
+def test_fit_stays_finite_on_the_reconstruction_stability_cases(small_scene, case):
+    """The stability suite of the reconstruction issue (rank-deficient sets, 10x noise) through the
+    whole fit: outputs, loss history and the gradients of the last step's loss are finite."""
+    from capture_sim.simulator import simulate
+
+    scene, pixels = small_scene
+    rig = pixels.rig
+    noise = rig.noise.scaled(10.0) if case == "strong_noise" else None
+    capture = simulate(_stability_patterns(case, rig), pixels.transport, rig, exposure=0.5, noise=noise, bit_depth=None,
+                       generator=torch.Generator().manual_seed(6))
+    arguments = (capture.captures, capture.emission, pixels.points, pixels.lights(), Falloff(), pixels.transport.pixel_index,
+                 scene.height, scene.width)
+    result = fit_inverse_render(*arguments, FitConfig(num_basis=2, iterations=8, normal_search_at=(0.0,)))
+    for value in (result.normal, result.weights, result.diffuse, result.specular, result.roughness, torch.tensor(result.loss_history)):
+        assert bool(torch.isfinite(value).all()), case
+    leaves = [t.clone().requires_grad_() for t in (result.normal, result.weights, result.diffuse, result.specular, result.roughness)]
+    rendered = render_under_patterns(leaves[0], pixels.points, pixels.lights(), capture.emission, *leaves[1:], Falloff())
+    torch.sqrt(((rendered - capture.captures) ** 2).mean() + 1e-12).backward()
+    assert bool(torch.isfinite(rendered).all()) and all(bool(torch.isfinite(leaf.grad).all()) for leaf in leaves), case
+
+
 def test_fit_bad_input_raises(small_scene):
     scene, pixels = small_scene
     captures, emission, *_ = _olat_fit_data(pixels)

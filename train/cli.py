@@ -121,6 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
     invrender.add_argument("--noise", choices=NOISE_CHOICES, default="default")
     invrender.add_argument("--seed", type=int, default=0)
     invrender.add_argument("--rig", default=DEFAULT_RIG)
+    invrender.add_argument("--threads", type=int, default=1, help="torch threads (1: robust on a busy machine)")
     invrender.add_argument("--json", type=Path, default=None)
     invrender.add_argument("--out", type=Path, default=None)
     invrender.set_defaults(handler=_invrender)
@@ -199,11 +200,12 @@ def _invrender(args) -> None:
 
     from train.invrender_command import InvRenderConfig, run_invrender
 
-    changes = dict(scene=args.scene, patterns=args.patterns, basis=args.basis, noise=args.noise, seed=args.seed, rig=args.rig, json=args.json, out=args.out)
+    changes = dict(scene=args.scene, patterns=args.patterns, basis=args.basis, noise=args.noise, seed=args.seed, rig=args.rig, json=args.json, out=args.out,
+                   threads=args.threads)
     if args.iterations is not None:
         changes["iterations"] = args.iterations
     document = run_invrender(InvRenderConfig(**changes))
-    print(json.dumps({key: document[key] for key in ("mae", "psnr", "ssim", "seconds", "J") if key in document}, indent=2))
+    print(json.dumps({key: document[key] for key in ("mae", "psnr", "ssim", "seconds", "cpu_seconds", "J") if key in document}, indent=2))
 
 
 def _demo(args) -> None:
