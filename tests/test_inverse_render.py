@@ -459,6 +459,26 @@ def test_relighting_ssim_of_identical_and_shuffled_images():
     assert relighting_metrics(images, 1.0 - images, pixel_index, 16, 16)["ssim"] < 0.0  # anti-correlated
 
 
+def test_relighting_ssim_on_the_cropped_object_equals_the_full_image_ssim():
+    from reconstruct.metrics import ssim
+
+    height, width = 40, 50
+    rows, cols = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    mask = ((rows - 14) ** 2 + (cols - 30) ** 2) < 8**2  # small and off-centre: the crop is much smaller
+    pixel_index = torch.nonzero(mask.reshape(-1)).squeeze(1)
+    generator = torch.Generator().manual_seed(13)
+    truth = torch.rand(2, pixel_index.numel(), 3, generator=generator, dtype=torch.float64)
+    predicted = (truth + 0.1 * torch.randn(truth.shape, generator=generator, dtype=torch.float64)).clamp(0, 1)
+
+    def full(values):
+        images = torch.zeros((2, height * width, 3), dtype=torch.float64)
+        images[:, pixel_index] = values
+        return images.reshape(2, height, width, 3)
+
+    expected = ssim(full(predicted), full(truth), mask, 11)
+    assert relighting_metrics(predicted, truth, pixel_index, height, width)["ssim"] == pytest.approx(expected, abs=1e-12)
+
+
 def test_relighting_metrics_clip_to_full_scale():
     pixel_index = torch.arange(0, 64, 2)
     truth = torch.full((3, 32, 3), 0.5)
