@@ -901,6 +901,53 @@ class InverseRenderResult:
 # ----------------------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True, eq=False)
+class FitProblem:
+    """What a fit is fitted to: captures under known emission, and the geometry they were taken of.
+
+    One object serves the final fit, every candidate of model selection and its scoring, so the
+    eight inputs travel together instead of being repeated through every signature.
+
+    Attributes:
+        captures: (M, N, 3) captures of the masked pixels in [0, 1] (1 = saturated).
+        emission: (M, K, 3) effective emission (see ``fit_inverse_render``).
+        points: (N, 3) surface points, metres, camera frame.
+        lights: (K, 3) superpixel positions, metres, camera frame.
+        falloff: distance falloff (positive and finite over the scene).
+        pixel_index: (N,) flat indices of the pixels in the H x W image.
+        height, width: image size.
+    """
+
+    captures: torch.Tensor
+    emission: torch.Tensor
+    points: torch.Tensor
+    lights: torch.Tensor
+    falloff: Callable
+    pixel_index: torch.Tensor
+    height: int
+    width: int
+
+    def patterns(self, index: torch.Tensor) -> "FitProblem":
+        """The same scene with only the patterns (captures and emission rows) ``index``."""
+        return FitProblem(self.captures[index], self.emission[index], self.points, self.lights, self.falloff,
+                          self.pixel_index, self.height, self.width)
+
+    def initial_estimate(self) -> "InitialEstimate":
+        """``initial_estimate`` of these captures, with the image grid for filling invalid pixels."""
+        return initial_estimate(self.captures, self.emission, self.points, self.lights, self.falloff,
+                                pixel_index=self.pixel_index, height=self.height, width=self.width)
+
+    def fit(self, config: "FitConfig" = None, initial: "InitialEstimate | None" = None, log=None,
+            warm_start: "InverseRenderResult | None" = None) -> "InverseRenderResult":
+        """``fit_inverse_render`` of this problem."""
+        return fit_inverse_render(self.captures, self.emission, self.points, self.lights, self.falloff, self.pixel_index,
+                                  self.height, self.width, FitConfig() if config is None else config, initial, log, warm_start)
+
+    def relight(self, result: "InverseRenderResult", emission: torch.Tensor) -> torch.Tensor:
+        """(V, N, 3) noise-free, unclipped images of a fitted ``result`` under other ``emission`` (V, K, 3)."""
+        return result.render(self.points, self.lights, emission, self.falloff)
+
+
 def grid_neighbours(pixel_index: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """Right and lower neighbours of masked pixels in the image grid.
 

@@ -565,7 +565,7 @@ def test_run_invrender_failure_leaves_no_staged_logs(tmp_path, scene_file, monke
     def broken(*args, **kwargs):
         raise RuntimeError("fit failed")
 
-    monkeypatch.setattr(command, "fit_inverse_render", broken)
+    monkeypatch.setattr(command.FitProblem, "fit", broken)
     out = tmp_path / "run"
     with pytest.raises(RuntimeError):
         command.run_invrender(command.InvRenderConfig(scene=scene_file, out=out, basis="1", iterations=2))

@@ -36,7 +36,7 @@ from capture_sim.simulator import auto_exposure, sensor, simulate
 from patterns.io import check_patterns_match_rig, load_patterns
 from patterns.png import write_png
 from reconstruct.metrics import angular_error_deg, normal_metrics
-from reconstruct.inverse_render import FitConfig, InverseRenderResult, fit_inverse_render, initial_estimate, render_under_patterns
+from reconstruct.inverse_render import FitConfig, FitProblem, InverseRenderResult, render_under_patterns
 from reconstruct.model_selection import SelectionConfig, choose_light_model, light_spread, select_basis
 from reconstruct.relight import TEST_EVERY, VALIDATION_EVERY, olat_emission, relighting_metrics, split_lights
 from train.figures import for_display, image_grid, normal_to_rgb, save_figure
@@ -257,10 +257,11 @@ def _fit_and_evaluate(config: InvRenderConfig, scene, pixels, split, data: _Data
     num_lights = pixels.transport.num_lights
     pixel_index, height, width = grid["pixel_index"], grid["height"], grid["width"]
     points, lights, falloff = pixels.points.float(), pixels.lights().float(), pixels.rig.falloff
+    problem = FitProblem(data.captures, data.emission, points, lights, falloff, pixel_index, height, width)
 
     # ---- starting point: analytic photometric stereo on the fit captures
     tick = time.perf_counter()
-    initial = initial_estimate(data.captures, data.emission, points, lights, falloff, **grid)
+    initial = problem.initial_estimate()
     timings["initial_estimate"] = time.perf_counter() - tick
 
     # ---- light model: near field unless far field is indistinguishable
@@ -280,20 +281,19 @@ def _fit_and_evaluate(config: InvRenderConfig, scene, pixels, split, data: _Data
     num_basis = config.num_basis()
     specular = True
     if num_basis is None:
-        selection = _select(config, data, split, initial, template, points, lights, falloff, grid, board)
+        selection = _select(config, data, split, problem, initial, template, board)
         num_basis, specular = selection.chosen.num_basis, selection.chosen.specular
     timings["model_selection"] = time.perf_counter() - tick
 
     # ---- final fit on all fit captures
     tick = time.perf_counter()
     fit_config = dataclasses.replace(template, num_basis=num_basis, specular=specular, iterations=config.iterations)
-    result = fit_inverse_render(data.captures, data.emission, points, lights, falloff, pixel_index, height, width,
-                                fit_config, initial, log=lambda step, values: board.scalars("fit", step, values))
+    result = problem.fit(fit_config, initial, log=lambda step, values: board.scalars("fit", step, values))
     timings["fit"] = time.perf_counter() - tick
 
     # ---- evaluation: held-out relighting and normals
     tick = time.perf_counter()
-    relit = result.render(points, lights, olat_emission(split.test, num_lights, data.olat_exposure), falloff)
+    relit = problem.relight(result, olat_emission(split.test, num_lights, data.olat_exposure))
     relighting = relighting_metrics(relit, data.test_truth, pixel_index, height, width)
     normal_error = None if pixels.normal is None else normal_error_stats(result.normal, pixels.normal)
     timings["evaluation"] = time.perf_counter() - tick
@@ -339,25 +339,21 @@ def _jsonable(values: dict) -> dict:
     return json.loads(json.dumps(values, default=lambda value: list(value) if isinstance(value, tuple) else str(value)))
 
 
-def _select(config, data: _Data, split, initial, template, points, lights, falloff, grid, board):
+def _select(config, data: _Data, split, problem: FitProblem, initial, template, board):
     """Model selection: candidates fitted on the non-validation data, scored on validation OLAT images."""
-    num_lights = lights.shape[0]
+    num_lights = problem.lights.shape[0]
     validation_position = torch.searchsorted(split.fit, split.validation)
     validation_images = data.olat_captures[validation_position]
     validation_emission = olat_emission(split.validation, num_lights, data.olat_exposure)
     if config.patterns == "olat":
-        train_position = torch.searchsorted(split.fit, split.train)
-        captures = data.olat_captures[train_position]
-        emission = olat_emission(split.train, num_lights, data.olat_exposure)
-        start = initial_estimate(captures, emission, points, lights, falloff, **grid)
-    else:
-        captures, emission, start = data.captures, data.emission, initial
+        # The fit captures are the fit lights' OLAT images: drop the validation lights' rows.
+        problem = problem.patterns(torch.searchsorted(split.fit, split.train))
+        initial = problem.initial_estimate()
 
     def log(num_basis, specular, candidate):
         board.scalars(f"selection/{'specular' if specular else 'lambertian'}", num_basis, {"validation_psnr": candidate.psnr})
 
-    return select_basis(captures, emission, points, lights, falloff, grid["pixel_index"], grid["height"], grid["width"],
-                        validation_emission, validation_images, template, config.selection, start, log)
+    return select_basis(problem, validation_emission, validation_images, template, config.selection, initial, log)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -627,17 +623,16 @@ def _bench_speed(repeats, iterations, family, num_patterns, num_basis, seed) -> 
         captures = sensor(exposure * radiance, rig.noise, rig.bit_depth, torch.Generator().manual_seed(seed))
     emission = exposure * emitted
     count = int(pixel_index.numel())
-    grid = (pixel_index, height, width)
+    problem = FitProblem(captures, emission, points, lights, rig.falloff, pixel_index, height, width)
 
-    initial_s, initial_cpu_s, initial = _timed(
-        lambda: initial_estimate(captures, emission, points, lights, rig.falloff, pixel_index=pixel_index, height=height, width=width), repeats)
+    initial_s, initial_cpu_s, initial = _timed(problem.initial_estimate, repeats)
 
     def steps(batch_pixels, iterations):
         config = FitConfig(num_basis=num_basis, iterations=iterations, normal_search_at=(), seed=seed, batch_pixels=batch_pixels)
         walls, cpus, setups, result = [], [], [], None
         for _ in range(repeats):
             cpu = time.process_time()
-            result = fit_inverse_render(captures, emission, points, lights, rig.falloff, *grid, config, initial)
+            result = problem.fit(config, initial)
             cpus.append(time.process_time() - cpu)
             walls.append(result.seconds - result.setup_seconds)
             setups.append(result.setup_seconds)
@@ -661,7 +656,7 @@ def _bench_speed(repeats, iterations, family, num_patterns, num_basis, seed) -> 
     search_s, search_cpu_s, _ = _timed(lambda: search_round(model, geometry, plan, pixels_first, saturated, fit_config), repeats)
     test_lights = split_lights(rig.num_lights).test
     eval_s, eval_cpu_s, _ = _timed(
-        lambda: result.render(points, lights, olat_emission(test_lights, rig.num_lights, exposure), rig.falloff), repeats)
+        lambda: problem.relight(result, olat_emission(test_lights, rig.num_lights, exposure)), repeats)
 
     # Naive baseline: broadcast shading of every (pixel, light) pair, then an einsum with the emission.
     batch = torch.randperm(count, generator=torch.Generator().manual_seed(seed))[: min(fit_config.batch_pixels, count)]
