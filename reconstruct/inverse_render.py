@@ -29,7 +29,8 @@ Fit (Choi et al., ICCV 2025), with the changes marked (*):
    every normal is tilted to n . v >= 0.2: a start at n . v <= 0 sees no specular lobe, hence no
    gradient to leave by.
 2. Clusters: k-means on hue and saturation of the photometric-stereo albedo (a pseudo-diffuse
-   image) into J clusters: one-hot weights (softmax logits, 0.9 on the own cluster).
+   image) into J clusters: one-hot weights (softmax logits, 0.9 on the own cluster). (*) The
+   tightest of 8 seeded k-means++ runs is kept: a single run can split one material and merge two.
 3. Basis BRDFs: roughness 0.5. (*) Diffuse and specular albedos from their least-squares values at
    the starting normals and clusters (``least_squares_albedos``) instead of the cluster median and
    rho_s = 0.5: 0.5 in a scene's arbitrary radiometric units can be far off, and a lobe the scene
@@ -686,14 +687,16 @@ def hue_saturation_features(albedo: torch.Tensor) -> np.ndarray:
     return torch.stack([saturation * torch.cos(hue), saturation * torch.sin(hue)], dim=1).numpy().astype(np.float64)
 
 
-def cluster_albedo(albedo: torch.Tensor, valid: torch.Tensor, num_basis: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+def cluster_albedo(albedo: torch.Tensor, valid: torch.Tensor, num_basis: int, seed: int = 0,
+                   restarts: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
     """k-means on hue and saturation: cluster labels and per-cluster diffuse albedos.
 
     Args:
         albedo: (N, 3) pseudo-diffuse albedo rho_d.
         valid: (N,) bool, pixels whose albedo is trusted (others are assigned to the nearest centre).
         num_basis: J clusters.
-        seed: k-means seed (k-means++ initialisation).
+        seed: k-means seed (k-means++ initialisation); restart r uses seed + r.
+        restarts: k-means runs; the one with the least within-cluster sum of squares is kept.
 
     Returns:
         labels: (N,) long in [0, J).
@@ -707,9 +710,14 @@ def cluster_albedo(albedo: torch.Tensor, valid: torch.Tensor, num_basis: int, se
     if num_basis == 1 or len(trusted) <= num_basis:
         labels = np.zeros(len(features), dtype=np.int64) if num_basis == 1 or len(trusted) == 0 else np.arange(len(features)) % num_basis
     else:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # an empty cluster is handled below
-            centroids, _ = kmeans2(trusted, num_basis, iter=20, minit="++", seed=seed)
+        best_distortion, centroids = math.inf, None
+        for attempt in range(restarts):  # k-means++ lands in local minima: keep the tightest of a few
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # an empty cluster is handled below
+                candidate, _ = kmeans2(trusted, num_basis, iter=20, minit="++", seed=seed + attempt)
+            distortion = float(np.square(vq(trusted, candidate)[1]).sum())
+            if distortion < best_distortion:
+                best_distortion, centroids = distortion, candidate
         labels, _ = vq(features, centroids)
     labels = torch.as_tensor(labels, dtype=torch.int64)
     centres = torch.empty((num_basis, 3), dtype=albedo.dtype)

@@ -255,6 +255,22 @@ def test_cluster_albedo_separates_hues_and_is_seeded():
     assert len(set(labels.tolist())) == 3 and centres.shape == (3, 3)
 
 
+def test_cluster_albedo_keeps_the_tightest_of_its_restarts():
+    from reconstruct.inverse_render import hue_saturation_features
+
+    generator = torch.Generator().manual_seed(9)
+    albedo = torch.rand(400, 3, generator=generator) * 0.8 + 0.1  # no clear clusters: k-means++ starts matter
+    valid = torch.ones(400, dtype=torch.bool)
+    features = torch.as_tensor(hue_saturation_features(albedo))
+
+    def distortion(labels):
+        centres = torch.stack([features[labels == j].mean(0) for j in range(5)])
+        return float(((features - centres[labels]) ** 2).sum())
+
+    single = [distortion(cluster_albedo(albedo, valid, 5, seed=seed, restarts=1)[0]) for seed in range(8)]
+    assert distortion(cluster_albedo(albedo, valid, 5, seed=0, restarts=8)[0]) <= min(single) + 1e-9
+
+
 def test_least_squares_albedos_are_exact_for_true_geometry():
     points, normals, lights, _, diffuse, specular, _ = _random_scene(num_pixels=60, num_basis=2, dtype=torch.float32)
     labels = torch.arange(60) % 2
