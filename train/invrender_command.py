@@ -704,6 +704,8 @@ def _bench_speed(repeats, iterations, family, num_patterns, num_basis, seed) -> 
         "evaluation_s": eval_s,
         "naive_per_iter_s": naive_per_iter,
         "naive_vs_fast_ratio": naive_per_iter / per_iter,
+        "naive_per_iter_cpu_s": naive_per_iter_cpu,
+        "naive_vs_fast_ratio_cpu": naive_per_iter_cpu / per_iter_cpu,
         "naive_batch_pixels": int(batch.numel()),
         "image": [height, width],
         "lights": rig.num_lights,
