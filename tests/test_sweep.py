@@ -47,3 +47,9 @@ def test_sweep_rejects_bad_noise_scales(tiny_scenes):
         noise_sweep(tiny_scenes, (-1.0,), progress=False)
     with pytest.raises(InputError):
         noise_sweep([], progress=False)
+
+
+def test_sweep_flag_needs_the_ps_target():
+    from train.cli import run
+
+    assert run(["bench", "sim", "--sweep"]) == 2
