@@ -250,23 +250,51 @@ class _LightingMoments(torch.autograd.Function):
     @staticmethod
     def forward(ctx, vectors, captures, weight):
         ctx.save_for_backward(vectors, captures, weight)
-        return _moments_forward(vectors, captures, weight)
+        count = vectors.shape[-1]
+        if count <= MOMENT_BLOCK:
+            return _moments_forward(vectors, captures, weight)
+        outputs = (vectors.new_empty((3, 6, count)), vectors.new_empty((3, 3, count)), vectors.new_empty((3, count)))
+        for block in _pixel_blocks(count):
+            for output, value in zip(outputs, _moments_forward(vectors[..., block], captures[..., block], weight[..., block])):
+                output[..., block] = value
+        return outputs
 
     @staticmethod
     def backward(ctx, grad_moment, grad_projection, grad_energy):
         vectors, captures, weight = ctx.saved_tensors
-        # dB_c/db: d(b_i b_j)/db_i = b_j, so dL/db_i = q sum_j S_ij b_j with S the symmetric
-        # gradient (diagonal entries doubled); dr_c/db_i = q I; dr_c/dI = q b; d(q I^2)/dI = 2 q I.
-        xx, yy, zz, xy, xz, yz = grad_moment.unbind(1)
-        symmetric = torch.stack(
-            [torch.stack([2 * xx, xy, xz], 1), torch.stack([xy, 2 * yy, yz], 1), torch.stack([xz, yz, 2 * zz], 1)], 1
-        )  # (3 c, 3 i, 3 j, N)
-        grad_vectors = grad_projection[None] * captures[:, :, None]
-        for j in range(3):
-            grad_vectors.addcmul_(symmetric[None, :, :, j], vectors[:, :, None, j])
-        grad_vectors *= weight[:, :, None]
-        grad_captures = weight * ((grad_projection[None] * vectors).sum(2) + 2 * grad_energy[None] * captures)
+        count = vectors.shape[-1]
+        if count <= MOMENT_BLOCK:
+            return (*_moments_backward(vectors, captures, weight, grad_moment, grad_projection, grad_energy), None)
+        grad_vectors, grad_captures = torch.empty_like(vectors), torch.empty_like(captures)
+        for block in _pixel_blocks(count):
+            grads = _moments_backward(
+                vectors[..., block], captures[..., block], weight[..., block], grad_moment[..., block], grad_projection[..., block], grad_energy[..., block]
+            )
+            grad_vectors[..., block], grad_captures[..., block] = grads
         return grad_vectors, grad_captures, None
+
+
+MOMENT_BLOCK = 8192
+"""Pixels per block of the moments' elementwise work (temporaries stay in cache)."""
+
+
+def _pixel_blocks(count: int):
+    return (slice(start, min(start + MOMENT_BLOCK, count)) for start in range(0, count, MOMENT_BLOCK))
+
+
+def _moments_backward(vectors, captures, weight, grad_moment, grad_projection, grad_energy):
+    # dB_c/db: d(b_i b_j)/db_i = b_j, so dL/db_i = q sum_j S_ij b_j with S the symmetric
+    # gradient (diagonal entries doubled); dr_c/db_i = q I; dr_c/dI = q b; d(q I^2)/dI = 2 q I.
+    xx, yy, zz, xy, xz, yz = grad_moment.unbind(1)
+    symmetric = torch.stack(
+        [torch.stack([2 * xx, xy, xz], 1), torch.stack([xy, 2 * yy, yz], 1), torch.stack([xz, yz, 2 * zz], 1)], 1
+    )  # (3 c, 3 i, 3 j, N)
+    grad_vectors = grad_projection[None] * captures[:, :, None]
+    for j in range(3):
+        grad_vectors.addcmul_(symmetric[None, :, :, j], vectors[:, :, None, j])
+    grad_vectors *= weight[:, :, None]
+    grad_captures = weight * ((grad_projection[None] * vectors).sum(2) + 2 * grad_energy[None] * captures)
+    return grad_vectors, grad_captures
 
 
 def lighting_moments(lighting_vectors: torch.Tensor, captures: torch.Tensor, equation_weight: torch.Tensor):
