@@ -135,6 +135,10 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("target", help="what to benchmark: sim, ps, train, invrender")
     bench.add_argument("--json", type=Path, default=None, help="write the results here")
     bench.add_argument("--repeats", type=int, default=5, help="timed runs per measurement (median)")
+    bench.add_argument(
+        "--sweep", action="store_true", help="with target ps: normal error against noise level for several methods (JSON and a chart next to it)"
+    )
+    bench.add_argument("--size", type=_size, default=(128, 153), help="image size HxW of the --sweep scenes (default 128x153)")
     bench.set_defaults(handler=_bench)
 
     return parser
@@ -223,6 +227,17 @@ def _bench(args) -> None:
 
     if args.repeats < 1:
         raise InputError("--repeats must be at least 1")
+    if args.sweep:
+        if args.target != "ps":
+            raise InputError(f"--sweep applies to target ps, not {args.target!r}")
+        from train.bench import run_sweep
+
+        document = run_sweep(args.json, args.size)
+        for row in document["methods"]:
+            print(f"{row['label']:36s} " + "  ".join(f"{scale:g}: {mae:.3f}" for scale, mae in zip(document["noise_scales"], row["mae"])))
+        if args.json is not None:
+            print(f"wrote {args.json} and {args.json.with_suffix('.png')}")
+        return
     print(json.dumps(run_bench(args.target, args.json, args.repeats), indent=2))
 
 
