@@ -60,7 +60,7 @@ def test_learning_lowers_training_loss(scene_dirs):
     from patterns.parameterization import patterns_to_logits
     from reconstruct.unrolled_ps import UnrolledPSConfig
 
-    scenes = [scene_pixels(s, rig, True) for s in resolve_scenes(config.scenes, "train", rig)]
+    scenes = learn.training_samplers([scene_pixels(s, rig, True) for s in resolve_scenes(config.scenes, "train", rig)], config)
     logits = patterns_to_logits(make_patterns("tri_random", 3)).requires_grad_()
     optimiser = torch.optim.Adam([logits], lr=0.1)
     losses = []
