@@ -89,3 +89,25 @@ def test_bad_config_raises(tmp_path, scene_dirs):
         TrainConfig(loss="l7")
     with pytest.raises(InputError):
         TrainConfig(num_patterns=0)
+
+
+def test_shuffled_windows_are_views_of_every_pixel(scene_dirs):
+    from train.scene_pixels import scene_pixels, shuffle_pixels
+    from train.scene_sets import resolve_scenes
+
+    rig = load_rig()
+    pixels = scene_pixels(resolve_scenes((str(scene_dirs[0]),), "train", rig)[0], rig, True)
+    sampler = shuffle_pixels(pixels, 50, torch.Generator().manual_seed(3))
+    shuffled = sampler.scene
+    assert shuffled.num_pixels == pixels.num_pixels + 49 and sampler.reach.shape == (rig.num_lights, pixels.num_pixels + 49)
+    # The order is a permutation of every pixel, wrapped by window - 1.
+    order = shuffled.transport.pixel_index
+    assert sorted(order[: pixels.num_pixels].tolist()) == sorted(pixels.transport.pixel_index.tolist())
+    assert torch.equal(order[pixels.num_pixels:], order[:49])
+    generator = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        part = sampler.draw(generator)
+        window = shuffled.transport.subset(part).matrix
+        assert window.shape[2] == 50 and window.untyped_storage().data_ptr() == shuffled.transport.matrix.untyped_storage().data_ptr()
+    with pytest.raises(InputError):
+        shuffle_pixels(pixels, 0, generator)
