@@ -111,3 +111,30 @@ def test_shuffled_windows_are_views_of_every_pixel(scene_dirs):
         assert window.shape[2] == 50 and window.untyped_storage().data_ptr() == shuffled.transport.matrix.untyped_storage().data_ptr()
     with pytest.raises(InputError):
         shuffle_pixels(pixels, 0, generator)
+
+
+def test_default_toml_agrees_with_train_config():
+    from pathlib import Path
+
+    from train.config_io import load_config
+
+    path = Path(__file__).resolve().parents[1] / "configs" / "train" / "default.toml"
+    assert load_config(TrainConfig, path) == TrainConfig()
+
+
+def test_full_solver_loss_has_finite_gradients(scene_dirs):
+    from patterns.families import make_patterns
+    from patterns.parameterization import patterns_to_logits
+    from reconstruct.unrolled_ps import UnrolledPSConfig
+    from train.scene_pixels import scene_pixels
+    from train.scene_sets import resolve_scenes
+
+    with pytest.raises(InputError, match="solver"):
+        TrainConfig(solver="newton")
+    config = _config(scene_dirs, solver="full")
+    rig = load_rig()
+    scenes = learn.training_samplers([scene_pixels(s, rig, True) for s in resolve_scenes(config.scenes, "train", rig)], config)
+    logits = patterns_to_logits(make_patterns("tri_random", 3)).requires_grad_()
+    loss = learn.training_loss(logits, scenes, config, 0, UnrolledPSConfig())
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(logits.grad).all() and float(logits.grad.abs().sum()) > 0
