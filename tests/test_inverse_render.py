@@ -596,9 +596,9 @@ def test_run_invrender_missing_scene_raises(tmp_path):
 
 
 # ----------------------------------------------------------------------------------------------
-# Acceptance at 128 x 153 (slow): quality only. Wall and CPU times, and the learned M = 4 set, are
-# measured by `displex bench invrender` (its "acceptance" part runs this scene from OLAT and from
-# patterns/data/ddps/optimized_tri_random_4.npy).
+# Acceptance at 128 x 153 (slow): quality only. Wall and CPU times, and the learned M = 4 sets, are
+# measured by `displex bench invrender` (its "acceptance" part runs this scene from OLAT, from M = 4
+# patterns it learns with the `displex train` defaults, and from the published learned set).
 # ----------------------------------------------------------------------------------------------
 
 
