@@ -45,8 +45,10 @@ class TrainConfig:
     """M, the number of patterns to learn."""
     init: str = "auto"
     """Starting patterns: a family name (made with its default parameters), a pattern file, or
-    'auto': tri_gradient for M <= 2 (mono families are rank-deficient there), else mono_gradient
-    (the best heuristic families on the default scenes)."""
+    'auto': tri_complementary for M <= 2 (mono families are rank-deficient there), else
+    mono_gradient. Measured on the default scenes (test MAE after the default 150 steps): at M = 2,
+    10.84 deg from tri_complementary, 11.20 from tri_gradient, 12.07 from tri_random; at M = 4,
+    9.45 from mono_gradient, 9.59 from tri_complementary."""
     steps: int = 150
     """Adam steps (on the default scenes the test MAE stops improving after about 100 at lr 1)."""
     learning_rate: float = 1.0
@@ -103,7 +105,7 @@ class TrainConfig:
 def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
     """(M, R, C, 3) starting patterns from a family name, 'auto' or a pattern file."""
     if config.init == "auto":
-        family = "tri_gradient" if config.num_patterns <= 2 else "mono_gradient"
+        family = "tri_complementary" if config.num_patterns <= 2 else "mono_gradient"
         return make_patterns(family, config.num_patterns, rows=rows, cols=cols, seed=config.seed).float()
     if config.init in FAMILIES:
         return make_patterns(config.init, config.num_patterns, rows=rows, cols=cols, seed=config.seed).float()
