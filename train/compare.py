@@ -123,6 +123,9 @@ class CompareConfig:
     eval_pixels_per_scene: int = 0
     """Masked pixels per test scene that every method is measured on: one fixed random subset per
     scene, the same for every method and noise level (0 = every masked pixel)."""
+    eval_workers: int = 1
+    """Processes evaluating pattern sets in parallel (each single-threaded; results do not depend
+    on it). 1 evaluates in this process with torch's default threads."""
     train_scenes: tuple[str, ...] = ()
     """Scenes for learning and search; empty = the default synthetic train split."""
     test_scenes: tuple[str, ...] = ()
@@ -146,8 +149,8 @@ class CompareConfig:
         outside = sorted({m for m in counts if m not in self.pattern_counts})
         if outside:
             raise InputError(f"M = {', '.join(map(str, outside))} (learned, re-rendering or [[search]] runs) not in pattern_counts {list(self.pattern_counts)}")
-        if self.eval_pixels_per_scene < 0 or not self.rerender_weight > 0:
-            raise InputError("eval_pixels_per_scene must be >= 0 and rerender_weight > 0")
+        if self.eval_pixels_per_scene < 0 or not self.rerender_weight > 0 or self.eval_workers < 1:
+            raise InputError("eval_pixels_per_scene must be >= 0, rerender_weight > 0 and eval_workers >= 1")
         self.ps_config()
         for item in self.external:
             if not Path(item.path).is_file():
@@ -499,33 +502,65 @@ def _pattern_key(patterns) -> str:
     return f"{values.shape}:{hashlib.sha1(values.tobytes()).hexdigest()}"
 
 
+_WORKER_STATE: dict = {}
+"""Scenes, pixel subsets and solver settings of the evaluation workers (inherited by fork)."""
+
+
+def _init_worker() -> None:
+    # Forked children must not enter the parent's OpenMP pool (as torch's DataLoader workers).
+    torch.set_num_threads(1)
+
+
+def _evaluate_job(patterns, reference: bool, noise: float) -> list[dict]:
+    """Per-scene metrics of one pattern set at one noise level (runs in a worker or in-process)."""
+    state = _WORKER_STATE
+    settings = EvalSettings(method="woodham" if reference else "ps", noise_scale=noise, seed=state["seed"], ps=state["ps"])
+    if not isinstance(patterns, str):
+        patterns = torch.as_tensor(np.asarray(patterns, dtype=np.float32))
+    return [evaluate_scene(pixels, patterns, settings, index, subset).metrics
+            for index, (pixels, subset) in enumerate(zip(state["scenes"], state["columns"]))]
+
+
 def evaluate_methods(methods: list[Method], scenes, config: CompareConfig, exposure_ms: float, progress: bool) -> None:
     """Fill every method's ``evaluations`` with one summary per noise level (test scenes).
 
     Scenes are prepared once by the caller; every method is measured on the same pixels
     (``config.eval_pixels_per_scene``) with the same noise draws, and a pattern set that occurs
-    twice (e.g. an external file equal to a heuristic family) is evaluated once.
+    twice (e.g. an external file equal to a heuristic family) is evaluated once. With
+    ``config.eval_workers`` > 1 the (pattern set, noise level) jobs run in forked processes.
     """
-    columns = evaluation_columns(scenes, config.eval_pixels_per_scene, config.eval_seed)
-    ps_config = config.ps_config()
-    evaluated: dict[str, Method] = {}
-    bar = tqdm(total=len(methods) * len(config.noise_scales), desc="evaluating", unit="set", disable=not progress)
+    _WORKER_STATE.update(scenes=scenes, columns=evaluation_columns(scenes, config.eval_pixels_per_scene, config.eval_seed),
+                         ps=config.ps_config(), seed=config.eval_seed)
+    unique: dict[str, Method] = {}
+    for method in methods:
+        unique.setdefault(_pattern_key(method.patterns), method)
+    jobs = [(key, method, float(noise)) for key, method in unique.items() for noise in config.noise_scales]
+    metrics: dict = {}
+    bar = tqdm(total=len(jobs), desc="evaluating", unit="set", disable=not progress)
+    try:
+        if config.eval_workers > 1 and len(jobs) > 1:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            with ProcessPoolExecutor(config.eval_workers, mp_context=multiprocessing.get_context("fork"), initializer=_init_worker) as pool:
+                futures = {pool.submit(_evaluate_job, method.patterns, method.kind == "reference", noise): (key, noise)
+                           for key, method, noise in jobs}
+                for future in as_completed(futures):
+                    metrics[futures[future]] = future.result()
+                    bar.update(1)
+        else:
+            for key, method, noise in jobs:
+                metrics[(key, noise)] = _evaluate_job(method.patterns, method.kind == "reference", noise)
+                bar.update(1)
+    finally:
+        bar.close()
+        _WORKER_STATE.clear()
     for method in methods:
         key = _pattern_key(method.patterns)
-        if key in evaluated:
-            method.evaluations = [dict(evaluation) for evaluation in evaluated[key].evaluations]
-            method.info["same_patterns_as"] = evaluated[key].id
-            bar.update(len(config.noise_scales))
-            continue
-        patterns = method.patterns if isinstance(method.patterns, str) else torch.as_tensor(np.asarray(method.patterns, dtype=np.float32))
-        for noise in config.noise_scales:
-            settings = EvalSettings(method="woodham" if method.kind == "reference" else "ps", noise_scale=noise, seed=config.eval_seed, ps=ps_config)
-            scene_metrics = [evaluate_scene(pixels, patterns, settings, index, subset).metrics
-                             for index, (pixels, subset) in enumerate(zip(scenes, columns))]
-            method.evaluations.append({"noise_scale": float(noise), **summarise(scene_metrics, method.num_patterns, exposure_ms)})
-            bar.update(1)
-        evaluated[key] = method
-    bar.close()
+        if unique[key] is not method:
+            method.info["same_patterns_as"] = unique[key].id
+        method.evaluations = [{"noise_scale": float(noise), **summarise(metrics[(key, float(noise))], method.num_patterns, exposure_ms)}
+                              for noise in config.noise_scales]
 
 
 def method_record(method: Method, out_dir: Path) -> dict:

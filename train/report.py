@@ -190,6 +190,7 @@ def chart_mae_vs_cost(rows: list[dict], key: str, xlabel: str, title: str, capti
         ys = [row["mae"] for row in values]
         style = _style(kind, series)
         style.pop("linewidth", None)
+        style.pop("linestyle", None)
         ax.plot(xs, ys, linestyle="none", markersize=7 if kind != "heuristic" else 9, label=label, **style)
         if kind != "heuristic":  # heuristics share their M's positions: labels there would pile up
             for x, y, row in zip(xs, ys, values):
