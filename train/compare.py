@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -302,7 +303,8 @@ def compare_config_to_dict(config: CompareConfig) -> dict:
     out["learned_at"] = {str(m): dict(v) for m, v in config.learned_at.items()}
     out["learned_seeds_at"] = {str(m): list(v) for m, v in config.learned_seeds_at.items()}
     out["learned_counts"] = None if config.learned_counts is None else list(config.learned_counts)
-    out["solver"] = dict(config.solver)
+    # JSON has no infinity (e.g. restart_condition = inf): such values are written as strings.
+    out["solver"] = {key: str(value) if isinstance(value, float) and not math.isfinite(value) else value for key, value in config.solver.items()}
     return out
 
 
