@@ -29,7 +29,8 @@ Fit (Choi et al., ICCV 2025), with the changes marked (*):
    every normal is tilted to n . v >= 0.2: a start at n . v <= 0 sees no specular lobe, hence no
    gradient to leave by.
 2. Clusters: k-means on hue and saturation of the photometric-stereo albedo (a pseudo-diffuse
-   image) into J clusters: one-hot weights (softmax logits, 0.9 on the own cluster).
+   image) into J clusters: one-hot weights (softmax logits, 0.9 on the own cluster). (*) The
+   tightest of 8 seeded k-means++ runs is kept: a single run can split one material and merge two.
 3. Basis BRDFs: roughness 0.5. (*) Diffuse and specular albedos from their least-squares values at
    the starting normals and clusters (``least_squares_albedos``) instead of the cluster median and
    rho_s = 0.5: 0.5 in a scene's arbitrary radiometric units can be far off, and a lobe the scene
@@ -686,14 +687,16 @@ def hue_saturation_features(albedo: torch.Tensor) -> np.ndarray:
     return torch.stack([saturation * torch.cos(hue), saturation * torch.sin(hue)], dim=1).numpy().astype(np.float64)
 
 
-def cluster_albedo(albedo: torch.Tensor, valid: torch.Tensor, num_basis: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+def cluster_albedo(albedo: torch.Tensor, valid: torch.Tensor, num_basis: int, seed: int = 0,
+                   restarts: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
     """k-means on hue and saturation: cluster labels and per-cluster diffuse albedos.
 
     Args:
         albedo: (N, 3) pseudo-diffuse albedo rho_d.
         valid: (N,) bool, pixels whose albedo is trusted (others are assigned to the nearest centre).
         num_basis: J clusters.
-        seed: k-means seed (k-means++ initialisation).
+        seed: k-means seed (k-means++ initialisation); restart r uses seed + r.
+        restarts: k-means runs; the one with the least within-cluster sum of squares is kept.
 
     Returns:
         labels: (N,) long in [0, J).
@@ -707,9 +710,14 @@ def cluster_albedo(albedo: torch.Tensor, valid: torch.Tensor, num_basis: int, se
     if num_basis == 1 or len(trusted) <= num_basis:
         labels = np.zeros(len(features), dtype=np.int64) if num_basis == 1 or len(trusted) == 0 else np.arange(len(features)) % num_basis
     else:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # an empty cluster is handled below
-            centroids, _ = kmeans2(trusted, num_basis, iter=20, minit="++", seed=seed)
+        best_distortion, centroids = math.inf, None
+        for attempt in range(restarts):  # k-means++ lands in local minima: keep the tightest of a few
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # an empty cluster is handled below
+                candidate, _ = kmeans2(trusted, num_basis, iter=20, minit="++", seed=seed + attempt)
+            distortion = float(np.square(vq(trusted, candidate)[1]).sum())
+            if distortion < best_distortion:
+                best_distortion, centroids = distortion, candidate
         labels, _ = vq(features, centroids)
     labels = torch.as_tensor(labels, dtype=torch.int64)
     centres = torch.empty((num_basis, 3), dtype=albedo.dtype)
@@ -899,6 +907,53 @@ class InverseRenderResult:
 # ----------------------------------------------------------------------------------------------
 # Fit
 # ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class FitProblem:
+    """What a fit is fitted to: captures under known emission, and the geometry they were taken of.
+
+    One object serves the final fit, every candidate of model selection and its scoring, so the
+    eight inputs travel together instead of being repeated through every signature.
+
+    Attributes:
+        captures: (M, N, 3) captures of the masked pixels in [0, 1] (1 = saturated).
+        emission: (M, K, 3) effective emission (see ``fit_inverse_render``).
+        points: (N, 3) surface points, metres, camera frame.
+        lights: (K, 3) superpixel positions, metres, camera frame.
+        falloff: distance falloff (positive and finite over the scene).
+        pixel_index: (N,) flat indices of the pixels in the H x W image.
+        height, width: image size.
+    """
+
+    captures: torch.Tensor
+    emission: torch.Tensor
+    points: torch.Tensor
+    lights: torch.Tensor
+    falloff: Callable
+    pixel_index: torch.Tensor
+    height: int
+    width: int
+
+    def patterns(self, index: torch.Tensor) -> "FitProblem":
+        """The same scene with only the patterns (captures and emission rows) ``index``."""
+        return FitProblem(self.captures[index], self.emission[index], self.points, self.lights, self.falloff,
+                          self.pixel_index, self.height, self.width)
+
+    def initial_estimate(self) -> "InitialEstimate":
+        """``initial_estimate`` of these captures, with the image grid for filling invalid pixels."""
+        return initial_estimate(self.captures, self.emission, self.points, self.lights, self.falloff,
+                                pixel_index=self.pixel_index, height=self.height, width=self.width)
+
+    def fit(self, config: "FitConfig" = None, initial: "InitialEstimate | None" = None, log=None,
+            warm_start: "InverseRenderResult | None" = None) -> "InverseRenderResult":
+        """``fit_inverse_render`` of this problem."""
+        return fit_inverse_render(self.captures, self.emission, self.points, self.lights, self.falloff, self.pixel_index,
+                                  self.height, self.width, FitConfig() if config is None else config, initial, log, warm_start)
+
+    def relight(self, result: "InverseRenderResult", emission: torch.Tensor) -> torch.Tensor:
+        """(V, N, 3) noise-free, unclipped images of a fitted ``result`` under other ``emission`` (V, K, 3)."""
+        return result.render(self.points, self.lights, emission, self.falloff)
 
 
 def grid_neighbours(pixel_index: torch.Tensor, height: int, width: int) -> torch.Tensor:

@@ -34,6 +34,11 @@ SYMMETRIC_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 """(row, column) of the 6 stored entries of a symmetric 3x3 matrix: xx, yy, zz, xy, xz, yz."""
 
 
+CACHE_FLOATS = 1 << 18
+"""Entries of one (pixels x lights) temporary in the blocked loops: 1 MB in float32, about one
+core's L2 cache (larger blocks spill to memory and run ~2x slower)."""
+
+
 class LightField:
     """The superpixels' light at N surface points, evaluated in blocks of pixels.
 
@@ -64,6 +69,7 @@ class LightField:
         self.points = points
         self.lights = lights
         self.block_size = block_size
+        self.cache_block = min(block_size, max(64, CACHE_FLOATS // max(1, lights.shape[0])))
         self._lights_t = lights.T.contiguous()
         self.view = -points / points.norm(dim=1, keepdim=True).clamp_min(torch.finfo(points.dtype).tiny ** 0.5)
         # The unshadowed weights f_k / d_k are computed once and kept (N x K floats): every later
@@ -81,8 +87,7 @@ class LightField:
         inverse_square = isinstance(falloff, Falloff) and falloff.kind == "inverse_square"
         weights = torch.empty((self.num_pixels, self.lights.shape[0]), dtype=self.points.dtype)
         bad = self.points[:, 2] <= min_distance
-        for start in range(0, self.num_pixels, self.block_size):
-            block = slice(start, start + self.block_size)
+        for start, stop, block in self.cache_rows(None):
             points = self.points[block]
             # d^2 = |p|^2 + |X|^2 - 2 X.p as one matrix product; the mild cancellation is harmless
             # at the rig's scales (d >= ~0.1 m for points the camera can see).
@@ -108,30 +113,38 @@ class LightField:
         return weights, bad
 
     def _lit(self, rows, normal: torch.Tensor) -> torch.Tensor:
-        """(n, K) bool shadow masks of pixels ``rows`` with normals (3, n): p_k . n - X . n > 0."""
+        """(n, K) shadow masks of pixels ``rows`` with normals (3, n) as 1.0 / 0.0 in the working
+        dtype: p_k . n - X . n > 0. The comparison runs in place on the float product (a bool
+        mask would need a type promotion in every later product)."""
         points = self.points[rows]
-        return torch.addmm(-(points * normal.T).sum(1, keepdim=True), normal.T, self._lights_t) > 0
+        return torch.addmm(-(points * normal.T).sum(1, keepdim=True), normal.T, self._lights_t).gt_(0)
 
-    def block_rows(self, index):
+    def block_rows(self, index, block_size: int | None = None):
         """Yield (start, stop, rows): blocks of entries start:stop of ``index`` ((n,) long pixel
-        indices, or None for all N pixels) and their pixel rows (a slice or index tensor)."""
+        indices, or None for all N pixels) and their pixel rows (a slice or index tensor).
+        Blocks have ``block_size`` entries (default: the field's block size)."""
+        size = block_size or self.block_size
         count = self.num_pixels if index is None else index.numel()
-        for start in range(0, count, self.block_size):
-            stop = min(start + self.block_size, count)
+        for start in range(0, count, size):
+            stop = min(start + size, count)
             yield start, stop, (slice(start, stop) if index is None else index[start:stop])
+
+    def cache_rows(self, index):
+        """``block_rows`` in blocks whose (pixels x lights) temporaries fit the CPU's L2 cache."""
+        return self.block_rows(index, self.cache_block)
 
     def masks_differ(self, index, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
         """(n,) bool: whether normals ``first`` and ``second`` (3, n) of pixels ``index`` (or all)
         have different shadow masks. Compared block by block, never stored."""
         differ = torch.empty(first.shape[1], dtype=torch.bool)
-        for start, stop, rows in self.block_rows(index):
+        for start, stop, rows in self.cache_rows(index):
             lit = self._lit(rows, first[:, start:stop])
-            differ[start:stop] = (lit != self._lit(rows, second[:, start:stop])).any(dim=1)
+            differ[start:stop] = lit.ne_(self._lit(rows, second[:, start:stop])).amax(dim=1) > 0
         return differ
 
     def shadowed_weights(self, rows, normal: torch.Tensor) -> torch.Tensor:
         """(n, K) s_k f_k / d_k of pixels ``rows`` (slice or indices) with normals (3, n)."""
-        return self.weights[rows] * self._lit(rows, normal)
+        return self._lit(rows, normal).mul_(self.weights[rows])
 
     def vector_blocks(self, index, normal: torch.Tensor, lighting: torch.Tensor):
         """Effective lighting vectors with the attached shadows of the given normals, by blocks.
@@ -147,7 +160,15 @@ class LightField:
         """
         lighting = lighting.detach()
         for start, stop, rows in self.block_rows(index):
-            summed = torch.mm(self.shadowed_weights(rows, normal[:, start:stop]), lighting).T.reshape(-1, 3, 4, stop - start)
+            # The (pixels x lights) work runs in cache-sized sub-blocks, the per-pixel algebra on
+            # the caller's larger blocks (fewer small operations).
+            summed = torch.empty((stop - start, lighting.shape[1]), dtype=lighting.dtype)
+            for sub_start in range(0, stop - start, self.cache_block):
+                sub_stop = min(sub_start + self.cache_block, stop - start)
+                sub_rows = slice(start + sub_start, start + sub_stop) if index is None else rows[sub_start:sub_stop]
+                block_normal = normal[:, start + sub_start : start + sub_stop]
+                torch.mm(self.shadowed_weights(sub_rows, block_normal), lighting, out=summed[sub_start:sub_stop])
+            summed = summed.T.reshape(-1, 3, 4, stop - start)
             yield start, stop, summed[:, :, :3] - self.points[rows].T[None, None] * summed[:, :, 3:]
 
 
@@ -186,7 +207,7 @@ class _ShadowedLighting(torch.autograd.Function):
         grad_summed = torch.cat([grad_vectors, -(grad_vectors * points_t).sum(2, keepdim=True)], dim=2)
         grad_summed = grad_summed.reshape(-1, field.num_pixels)  # (12 M, N)
         grad_lighting = torch.zeros((field.lights.shape[0], grad_summed.shape[0]), dtype=grad_vectors.dtype)
-        for start, stop, rows in field.block_rows(None):
+        for start, stop, rows in field.cache_rows(None):
             weight = field.shadowed_weights(rows, normal[:, start:stop])
             grad_lighting.addmm_(weight.T, grad_summed[:, start:stop].T)
         return grad_lighting, None, None, None
@@ -229,23 +250,51 @@ class _LightingMoments(torch.autograd.Function):
     @staticmethod
     def forward(ctx, vectors, captures, weight):
         ctx.save_for_backward(vectors, captures, weight)
-        return _moments_forward(vectors, captures, weight)
+        count = vectors.shape[-1]
+        if count <= MOMENT_BLOCK:
+            return _moments_forward(vectors, captures, weight)
+        outputs = (vectors.new_empty((3, 6, count)), vectors.new_empty((3, 3, count)), vectors.new_empty((3, count)))
+        for block in _pixel_blocks(count):
+            for output, value in zip(outputs, _moments_forward(vectors[..., block], captures[..., block], weight[..., block])):
+                output[..., block] = value
+        return outputs
 
     @staticmethod
     def backward(ctx, grad_moment, grad_projection, grad_energy):
         vectors, captures, weight = ctx.saved_tensors
-        # dB_c/db: d(b_i b_j)/db_i = b_j, so dL/db_i = q sum_j S_ij b_j with S the symmetric
-        # gradient (diagonal entries doubled); dr_c/db_i = q I; dr_c/dI = q b; d(q I^2)/dI = 2 q I.
-        xx, yy, zz, xy, xz, yz = grad_moment.unbind(1)
-        symmetric = torch.stack(
-            [torch.stack([2 * xx, xy, xz], 1), torch.stack([xy, 2 * yy, yz], 1), torch.stack([xz, yz, 2 * zz], 1)], 1
-        )  # (3 c, 3 i, 3 j, N)
-        grad_vectors = grad_projection[None] * captures[:, :, None]
-        for j in range(3):
-            grad_vectors.addcmul_(symmetric[None, :, :, j], vectors[:, :, None, j])
-        grad_vectors *= weight[:, :, None]
-        grad_captures = weight * ((grad_projection[None] * vectors).sum(2) + 2 * grad_energy[None] * captures)
+        count = vectors.shape[-1]
+        if count <= MOMENT_BLOCK:
+            return (*_moments_backward(vectors, captures, weight, grad_moment, grad_projection, grad_energy), None)
+        grad_vectors, grad_captures = torch.empty_like(vectors), torch.empty_like(captures)
+        for block in _pixel_blocks(count):
+            grads = _moments_backward(
+                vectors[..., block], captures[..., block], weight[..., block], grad_moment[..., block], grad_projection[..., block], grad_energy[..., block]
+            )
+            grad_vectors[..., block], grad_captures[..., block] = grads
         return grad_vectors, grad_captures, None
+
+
+MOMENT_BLOCK = 8192
+"""Pixels per block of the moments' elementwise work (temporaries stay in cache)."""
+
+
+def _pixel_blocks(count: int):
+    return (slice(start, min(start + MOMENT_BLOCK, count)) for start in range(0, count, MOMENT_BLOCK))
+
+
+def _moments_backward(vectors, captures, weight, grad_moment, grad_projection, grad_energy):
+    # dB_c/db: d(b_i b_j)/db_i = b_j, so dL/db_i = q sum_j S_ij b_j with S the symmetric
+    # gradient (diagonal entries doubled); dr_c/db_i = q I; dr_c/dI = q b; d(q I^2)/dI = 2 q I.
+    xx, yy, zz, xy, xz, yz = grad_moment.unbind(1)
+    symmetric = torch.stack(
+        [torch.stack([2 * xx, xy, xz], 1), torch.stack([xy, 2 * yy, yz], 1), torch.stack([xz, yz, 2 * zz], 1)], 1
+    )  # (3 c, 3 i, 3 j, N)
+    grad_vectors = grad_projection[None] * captures[:, :, None]
+    for j in range(3):
+        grad_vectors.addcmul_(symmetric[None, :, :, j], vectors[:, :, None, j])
+    grad_vectors *= weight[:, :, None]
+    grad_captures = weight * ((grad_projection[None] * vectors).sum(2) + 2 * grad_energy[None] * captures)
+    return grad_vectors, grad_captures
 
 
 def lighting_moments(lighting_vectors: torch.Tensor, captures: torch.Tensor, equation_weight: torch.Tensor):

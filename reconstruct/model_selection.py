@@ -31,7 +31,7 @@ from typing import Callable
 import torch
 
 from capture_sim.errors import InputError, check_array
-from reconstruct.inverse_render import FitConfig, InitialEstimate, fit_inverse_render, initial_estimate, render_under_patterns
+from reconstruct.inverse_render import FitConfig, FitProblem, InitialEstimate, render_under_patterns
 from reconstruct.relight import pooled_psnr
 
 
@@ -237,14 +237,7 @@ def choose_light_model(initial: InitialEstimate, emission: torch.Tensor, points:
 
 
 def select_basis(
-    captures: torch.Tensor,
-    emission: torch.Tensor,
-    points: torch.Tensor,
-    lights: torch.Tensor,
-    falloff: Callable,
-    pixel_index: torch.Tensor,
-    height: int,
-    width: int,
+    problem: FitProblem,
     validation_emission: torch.Tensor,
     validation_images: torch.Tensor,
     template: FitConfig = FitConfig(),
@@ -255,37 +248,31 @@ def select_basis(
     """Choose J and Lambertian / specular by validation relighting (``select_model`` over real fits).
 
     Args:
-        captures: (M, N, 3) captures the candidates are fitted on (must not include the
-            validation images).
-        emission: (M, K, 3) their effective emission.
-        points: (N, 3) surface points, metres, camera frame.
-        lights: (K, 3) superpixel positions, metres, camera frame.
-        falloff: distance falloff.
-        pixel_index: (N,) flat pixel indices in the H x W image.
-        height, width: image size.
+        problem: the captures the candidates are fitted on (must not include the validation
+            images) and the scene geometry.
         validation_emission: (V, K, 3) emission of the validation images (e.g. exposed OLAT rows).
         validation_images: (V, N, 3) captured validation images in [0, 1].
         template: fit settings of every candidate; ``num_basis``, ``specular``, ``iterations`` and
             ``batch_pixels`` are replaced (the last two from ``config``).
         config: sweep settings.
-        initial: starting point shared by all candidates (computed from ``captures`` when None).
+        initial: starting point shared by all candidates (computed from the problem when None).
         log: optional callback ``log(num_basis, specular, candidate)`` after each candidate.
 
     Returns:
         Selection; each candidate's ``details`` holds its final training RMSE.
     """
-    check_array("validation_emission", validation_emission, ("V", lights.shape[0], 3), value_range=(0.0, math.inf))
-    check_array("validation_images", validation_images, (validation_emission.shape[0], points.shape[0], 3))
+    check_array("validation_emission", validation_emission, ("V", problem.lights.shape[0], 3), value_range=(0.0, math.inf))
+    check_array("validation_images", validation_images, (validation_emission.shape[0], problem.points.shape[0], 3))
     if initial is None:
-        initial = initial_estimate(captures, emission, points, lights, falloff)
+        initial = problem.initial_estimate()
     truth = validation_images.detach().double().clamp(0.0, 1.0)
 
     def evaluate(num_basis: int, specular: bool) -> Candidate:
         start = time.perf_counter()
         fit_config = dataclasses.replace(template, num_basis=num_basis, specular=specular, iterations=config.iterations,
                                          batch_pixels=config.batch_pixels)
-        result = fit_inverse_render(captures, emission, points, lights, falloff, pixel_index, height, width, fit_config, initial)
-        predicted = result.render(points, lights, validation_emission, falloff).double().clamp(0.0, 1.0)
+        result = problem.fit(fit_config, initial)
+        predicted = problem.relight(result, validation_emission).double().clamp(0.0, 1.0)
         candidate = Candidate(
             num_basis=num_basis,
             specular=specular,

@@ -22,6 +22,8 @@ from reconstruct.lighting import lighting_moments
 
 CONDITION_CAP = 1e12
 """Reported condition numbers are capped here (singular systems report exactly this value)."""
+JACOBIAN_BLOCK = 32768
+"""Pixels per block when ``implicit_step`` forms the per-pixel Jacobians (bounds temporaries)."""
 ABSOLUTE_DAMPING = 1e-12
 """Added to albedo denominators, in per-pixel normalised units where systems are of order one."""
 
@@ -308,16 +310,23 @@ def implicit_step(albedo: torch.Tensor, moments: Moments, damping: float) -> tup
         (albedo (3, N), normal (3, N)) carrying gradients.
     """
     albedo = albedo.detach()
-    constant = moments.detach()
-    with torch.enable_grad():
-        probe = albedo.clone().requires_grad_(True)
-        mapped, _ = alternation(probe, constant, damping)
-        rows = [torch.autograd.grad(mapped[i].sum(), probe, retain_graph=i < 2)[0] for i in range(3)]
+    count = albedo.shape[1]
+    inverse = torch.empty((3, 3, count), dtype=albedo.dtype)
     identity = torch.eye(3, dtype=albedo.dtype)[:, :, None]
-    residual_map = identity - torch.stack(rows, dim=0)  # I - J, J[i, j] = d Phi_i / d a_j
-    det = determinant(residual_map)
-    regular = det.abs() > 1e-3
-    inverse = torch.where(regular, adjugate(residual_map) / torch.where(regular, det, torch.ones_like(det)), identity)
+    # J is per pixel: form it in blocks so that the autograd temporaries stay small, with the
+    # three rows of J from one batched backward pass (vmap over the output directions).
+    for start in range(0, count, JACOBIAN_BLOCK):
+        block = slice(start, min(start + JACOBIAN_BLOCK, count))
+        constant = Moments(*(getattr(moments, name)[..., block].detach() for name in Moments._FIELDS))
+        with torch.enable_grad():
+            probe = albedo[:, block].clone().requires_grad_(True)
+            mapped, _ = alternation(probe, constant, damping)
+            directions = identity.expand(3, 3, probe.shape[1])
+            jacobian = torch.autograd.grad(mapped, probe, directions, is_grads_batched=True)[0]
+        residual_map = identity - jacobian  # I - J, J[i, j] = d Phi_i / d a_j
+        det = determinant(residual_map)
+        regular = det.abs() > 1e-3
+        inverse[..., block] = torch.where(regular, adjugate(residual_map) / torch.where(regular, det, torch.ones_like(det)), identity)
     mapped, _ = alternation(albedo, moments, damping)
     albedo_out = albedo + (inverse * (mapped - albedo)[None]).sum(1)
     return albedo_out, normal_step(albedo_out, moments, damping)

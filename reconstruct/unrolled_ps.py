@@ -3,13 +3,17 @@
 Same model as ``reconstruct.photometric_stereo`` (DESIGN section 4):
     I[m, c] = a_c * b[m, c] . n,     b[m, c] = sum_k E[m, k, c] f_k s_k l_k,   s_k = [l_k . n > 0]
 but with fixed iteration counts and no per-pixel restarts, so that a training step over ~10^5
-sampled pixels costs a few matrix products:
-- b for all pixels comes from ONE matrix product: with u_nk = s_nk f_nk / d_nk and
-  l_nk = (p_k - X_n) / d_nk, b[n, m, c] = sum_k u_nk E[m, k, c] p_k - X_n sum_k u_nk E[m, k, c],
-  i.e. (N, K) @ (K, 4 * 3 * M);
+sampled pixels costs a few matrix products and wide elementwise operations:
+- pixels lie on the last, contiguous axis of every tensor, and each 3x3 system is kept as its six
+  unique entries, so that every per-pixel operation (moments, 3x3 solves by the adjugate, dot
+  products) is a handful of elementwise operations over (.., N) rows instead of reductions over
+  tiny trailing axes;
+- b for all pixels comes from ONE matrix product: with u_kn = s_kn f_kn / d_kn and
+  l_kn = (p_k - X_n) / d_kn, b[m, c, :, n] = sum_k E[m, k, c] u_kn p_k - X_n sum_k E[m, k, c] u_kn,
+  i.e. (M * 3 * 4, K) @ (K, N);
 - the shadow masks and the alternations run without gradient to (near) convergence;
 - gradients come from ``grad_alternations`` alternations unrolled from the detached solution with
-  the final masks: a truncated implicit gradient, cheap in memory ((N, K) is kept once).
+  the final masks: a truncated implicit gradient, cheap in memory ((K, N) is kept once).
 The converged values equal the full solver's on well-posed pixels; training uses this, evaluation
 uses ``solve_ps`` (validity flags, restarts, exact implicit gradients).
 """
@@ -20,6 +24,10 @@ from dataclasses import dataclass
 import torch
 
 from capture_sim.errors import check_array
+
+# Unique entries of a symmetric 3x3 matrix, in the order (00, 11, 22, 01, 02, 12).
+_ROWS = (0, 1, 2, 0, 0, 1)
+_COLS = (0, 1, 2, 1, 2, 2)
 
 
 @dataclass(frozen=True)
@@ -38,50 +46,92 @@ class UnrolledPSConfig:
     """Tikhonov damping relative to each 3x3 system's trace / 3."""
     saturation_threshold: float = 0.999
     """Captures at or above this get zero weight."""
+    chunk_pixels: int = 8192
+    """Pixels per chunk of the gradient-free iterations (a speed setting; results do not depend on it)."""
+
+
+def _symmetric_apply(matrix: torch.Tensor, vector: torch.Tensor) -> torch.Tensor:
+    """S v for symmetric S given as (..., 6, N) unique entries and v (..., 3, N); (..., 3, N)."""
+    s00, s11, s22, s01, s02, s12 = matrix.unbind(-2)
+    v0, v1, v2 = vector.unbind(-2)
+    return torch.stack([s00 * v0 + s01 * v1 + s02 * v2, s01 * v0 + s11 * v1 + s12 * v2, s02 * v0 + s12 * v1 + s22 * v2], dim=-2)
+
+
+def _dot3(left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
+    """Dot product over the size-3 axis -2 of (..., 3, N) tensors (broadcasting); (..., N)."""
+    return left[..., 0, :] * right[..., 0, :] + left[..., 1, :] * right[..., 1, :] + left[..., 2, :] * right[..., 2, :]
+
+
+def _symmetric_solve(system: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+    """Solve symmetric 3x3 systems (6, N) (unique entries) for rhs (3, N) by the adjugate; (3, N).
+
+    Callers normalise the result, so the determinant only needs a safe sign and size.
+    """
+    a, b, c, d, e, f = system.unbind(0)  # [[a, d, e], [d, b, f], [e, f, c]]
+    c00, c11, c22 = b * c - f * f, a * c - e * e, a * b - d * d
+    c01, c02, c12 = e * f - d * c, d * f - b * e, d * e - a * f
+    det = a * c00 + d * c01 + e * c02
+    adjugate = torch.stack([c00, c11, c22, c01, c02, c12])
+    safe = torch.where(det.abs() > 1e-30, det, torch.full_like(det, 1e-30))
+    return _symmetric_apply(adjugate, rhs) / safe
 
 
 def _inverse_apply(system: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
-    """Solve (N, 3, 3) symmetric systems for (N, 3) right-hand sides by the adjugate.
-
-    For symmetric A with rows r0, r1, r2 the adjugate's columns are r1 x r2, r2 x r0, r0 x r1.
-    """
-    r0, r1, r2 = system.unbind(1)
-    c0, c1, c2 = torch.linalg.cross(r1, r2), torch.linalg.cross(r2, r0), torch.linalg.cross(r0, r1)
-    det = (r0 * c0).sum(-1, keepdim=True)
-    solution = c0 * rhs[:, :1] + c1 * rhs[:, 1:2] + c2 * rhs[:, 2:]
-    # Callers normalise the result, so the determinant only needs a safe sign and size.
-    safe = torch.where(det.abs() > 1e-30, det, torch.full_like(det, 1e-30))
-    return solution / safe
-
-
-def _lighting_vectors(weights: torch.Tensor, table: torch.Tensor, points: torch.Tensor, num_patterns: int) -> torch.Tensor:
-    """b (N, M, 3 channels, 3) from u (N, K) and the (K, M * 3 * 4) table [E p_k, E]."""
-    mixed = (weights @ table).reshape(-1, num_patterns, 3, 4)
-    return mixed[..., :3] - points[:, None, None, :] * mixed[..., 3:]
+    """Solve (N, 3, 3) symmetric systems for (N, 3) right-hand sides by the adjugate; (N, 3)."""
+    unique = system[:, _ROWS, _COLS].T  # (6, N)
+    return _symmetric_solve(unique, rhs.T).T
 
 
 def _alternate(normal, albedo, moments, rhs_moments, damping, steps):
-    """``steps`` albedo/normal alternations on per-channel moments B_c (N,3,3,3), r_c (N,3,3)."""
-    eye = torch.eye(3, dtype=normal.dtype)
+    """``steps`` albedo/normal alternations.
+
+    Args:
+        normal: (3, N) unit normals; albedo: (3c, N).
+        moments: (3c, 6, N) per-channel B_c = sum_m w b b^T (unique entries).
+        rhs_moments: (3c, 3, N) per-channel r_c = sum_m w I b.
+    """
     # Relative floor, plus an absolute one well above the dtype's underflow for all-dark inputs.
     tiny = 1e-12 * moments.detach().abs().amax() + torch.finfo(moments.dtype).tiny ** 0.5
     for _ in range(steps):
-        projected = (moments * normal[:, None, None, :]).sum(-1)  # B_c n: (N, 3, 3); tiny batched matmuls are slower
-        quadratic = (projected * normal[:, None, :]).sum(-1)
-        albedo = ((rhs_moments * normal[:, None, :]).sum(-1) / (quadratic + tiny)).clamp_min(0.0)
-        system = ((albedo * albedo)[..., None, None] * moments).sum(1)
-        scale = system.diagonal(dim1=-2, dim2=-1).sum(-1) / 3.0
-        system = system + (damping * scale + 1e-30)[:, None, None] * eye
-        direction = _inverse_apply(system, (albedo[..., None] * rhs_moments).sum(1))
+        quadratic = _dot3(_symmetric_apply(moments, normal), normal)  # n^T B_c n: (3c, N)
+        albedo = (_dot3(rhs_moments, normal) / (quadratic + tiny)).clamp_min(0.0)
+        system = ((albedo * albedo)[:, None, :] * moments).sum(0)  # (6, N)
+        scale = (system[0] + system[1] + system[2]) / 3.0
+        system = torch.cat([system[:3] + (damping * scale + 1e-30), system[3:]])
+        direction = _symmetric_solve(system, (albedo[:, None, :] * rhs_moments).sum(0))
         # A zero direction (dark pixel) keeps the previous normal: no 0/0 in value or gradient.
-        length2 = (direction * direction).sum(-1, keepdim=True)
+        length2 = _dot3(direction, direction)
         usable = length2 > 1e-30
         direction = torch.where(usable, direction, normal.detach())
         normal = direction * torch.rsqrt(torch.where(usable, length2, torch.ones_like(length2)))
     return normal, albedo
 
 
-def solve_ps_unrolled(captures, emission, points, lights, falloff, config: UnrolledPSConfig = UnrolledPSConfig()):
+def light_reach(points: torch.Tensor, lights: torch.Tensor, falloff) -> torch.Tensor:
+    """f(d) / d for every light and point: with (p_k - X_n) it gives f_k l_k.
+
+    It depends on the geometry only, so callers that solve the same pixels repeatedly (learning)
+    compute it once and pass it to ``solve_ps_unrolled``.
+
+    Args:
+        points: (N, 3) surface points, metres, camera frame.
+        lights: (K, 3) superpixel positions, metres, camera frame.
+        falloff: callable distance (metres) -> falloff factor.
+
+    Returns:
+        (K, N) tensor in 1 / metres (times the falloff's unit), points' dtype; distances are
+        clamped to >= 1 mm as in the full solver.
+    """
+    lights = lights.to(points.dtype)
+    square = torch.cdist(lights, points).square().clamp_min(1e-6)
+    if getattr(falloff, "kind", None) == "inverse_square":
+        inverse = torch.rsqrt(square)
+        return inverse * inverse * inverse  # f / d = d^-3 without a square root or pow
+    distance = square.sqrt()
+    return falloff(distance) / distance
+
+
+def solve_ps_unrolled(captures, emission, points, lights, falloff, config: UnrolledPSConfig = UnrolledPSConfig(), reach: torch.Tensor | None = None):
     """Analytic photometric stereo with fixed iterations (see module docstring).
 
     Args:
@@ -91,6 +141,7 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
         lights: (K, 3) superpixel positions, metres, camera frame.
         falloff: callable distance (metres) -> falloff factor.
         config: iteration counts and damping.
+        reach: optional (K, N) ``light_reach(points, lights, falloff)``, precomputed (any strides).
 
     Returns:
         normal (N, 3) unit normals facing the camera, albedo (N, 3) >= 0; finite, differentiable
@@ -98,38 +149,48 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
     """
     check_array("captures", captures, ("M", "N", 3))
     check_array("emission", emission, (captures.shape[0], lights.shape[0], 3))
-    num_patterns = captures.shape[0]
+    num_patterns, num_pixels = captures.shape[0], captures.shape[1]
     dtype = captures.dtype
-    points, lights = points.to(dtype), lights.to(dtype)
-    distance = torch.cdist(points, lights).clamp_min(1e-3)  # (N, K)
-    reach = falloff(distance) / distance  # f_k / d_k: with (p_k - X) it gives f_k l_k
+    points_t, lights = points.to(dtype).T.contiguous(), lights.to(dtype)  # (3, N), (K, 3)
+    if reach is None:
+        reach = light_reach(points.to(dtype), lights, falloff)
+    check_array("reach", reach, (lights.shape[0], num_pixels))
+    reach = reach.to(dtype)
     lights_h = torch.cat([lights, torch.ones_like(lights[:, :1])], dim=1)  # (K, 4)
-    table = (emission.permute(1, 0, 2)[..., None] * lights_h[:, None, None, :]).reshape(lights.shape[0], -1)  # (K, M*3*4)
-    intensity = captures.permute(1, 0, 2)  # (N, M, 3)
+    table = (emission.permute(0, 2, 1)[:, :, None, :] * lights_h.T[None, None]).reshape(-1, lights.shape[0])  # (M*3*4, K)
+    intensity = captures.permute(0, 2, 1)  # (M, 3c, N)
     equation_weight = (intensity < config.saturation_threshold).to(dtype)
-    view = -points / points.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    view = -points_t / points_t.norm(dim=0, keepdim=True).clamp_min(1e-12)
 
-    def moments_for(normal_mask, table_values, values):
-        b = _lighting_vectors(reach * normal_mask, table_values, points, num_patterns)
-        weighted = (b * equation_weight[..., None]).permute(0, 2, 3, 1)  # (N, 3c, 3, M)
-        moments = weighted @ b.permute(0, 2, 1, 3)  # sum_m w b b^T: (N, 3c, 3, 3)
-        rhs_moments = (weighted @ values.permute(0, 2, 1)[..., None]).squeeze(-1)  # (N, 3c, 3)
+    def moments_for(lit_reach, table_values, values, part=slice(None)):
+        count = values.shape[-1]
+        mixed = (table_values @ lit_reach).reshape(num_patterns, 3, 4, count)
+        b = mixed[:, :, :3] - points_t[:, part] * mixed[:, :, 3:]  # (M, 3c, 3, n)
+        weighted = b * equation_weight[:, :, None, part]
+        moments = torch.stack([(weighted[:, :, i] * b[:, :, j]).sum(0) for i, j in zip(_ROWS, _COLS)], dim=1)  # (3c, 6, n)
+        rhs_moments = (weighted * values[:, :, None, :]).sum(0)  # (3c, 3, n)
         return moments, rhs_moments
 
-    def in_front(normal):
-        # l_k . n > 0  <=>  p_k . n > X . n: one (N, 3) @ (3, K) product instead of (N, K, 3) work.
-        return ((normal @ lights.T) > (normal * points).sum(-1, keepdim=True)).to(dtype)
+    def in_front(normal, part=slice(None)):
+        # l_k . n > 0  <=>  p_k . n > X . n: one (K, 3) @ (3, n) product; bool multiplies without a cast.
+        return (lights @ normal) > _dot3(normal, points_t[:, part])
 
+    normal = torch.empty(3, num_pixels, dtype=dtype)
+    albedo = torch.empty(3, num_pixels, dtype=dtype)
+    lit_reach = torch.empty(lights.shape[0], num_pixels, dtype=dtype)  # final s_kn f_kn / d_kn
     with torch.no_grad():
-        normal = view.clone()
-        albedo = torch.ones_like(normal)
-        for _ in range(max(1, config.shadow_iterations)):
-            lit = in_front(normal)
-            moments, rhs_moments = moments_for(lit, table.detach(), intensity.detach())
-            normal, albedo = _alternate(normal, albedo, moments, rhs_moments, config.damping, config.alternations)
-        lit = in_front(normal)
-    moments, rhs_moments = moments_for(lit, table, intensity)
-    normal, albedo = _alternate(normal.detach(), albedo.detach(), moments, rhs_moments, config.damping, config.grad_alternations)
+        # Chunks of pixels keep the (K, n) shadow work in cache instead of streaming (K, N) tensors.
+        for start in range(0, num_pixels, config.chunk_pixels):
+            part = slice(start, start + config.chunk_pixels)
+            part_normal, part_albedo = view[:, part], torch.ones_like(view[:, part])
+            values = intensity.detach()[:, :, part]
+            for _ in range(max(1, config.shadow_iterations)):
+                moments, rhs_moments = moments_for(reach[:, part] * in_front(part_normal, part), table.detach(), values, part)
+                part_normal, part_albedo = _alternate(part_normal, part_albedo, moments, rhs_moments, config.damping, config.alternations)
+            normal[:, part], albedo[:, part] = part_normal, part_albedo
+            lit_reach[:, part] = reach[:, part] * in_front(part_normal, part)
+    moments, rhs_moments = moments_for(lit_reach, table, intensity)
+    normal, albedo = _alternate(normal, albedo, moments, rhs_moments, config.damping, config.grad_alternations)
     # Keep the camera-facing sign (a flipped solution has the same residual once albedo absorbs it).
-    facing = torch.where((normal * view).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(dtype)
-    return normal * facing, albedo
+    facing = torch.where(_dot3(normal, view) < 0, -1.0, 1.0).to(dtype)
+    return (normal * facing).T, albedo.T

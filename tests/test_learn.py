@@ -60,7 +60,7 @@ def test_learning_lowers_training_loss(scene_dirs):
     from patterns.parameterization import patterns_to_logits
     from reconstruct.unrolled_ps import UnrolledPSConfig
 
-    scenes = [scene_pixels(s, rig, True) for s in resolve_scenes(config.scenes, "train", rig)]
+    scenes = learn.training_samplers([scene_pixels(s, rig, True) for s in resolve_scenes(config.scenes, "train", rig)], config)
     logits = patterns_to_logits(make_patterns("tri_random", 3)).requires_grad_()
     optimiser = torch.optim.Adam([logits], lr=0.1)
     losses = []
@@ -89,3 +89,52 @@ def test_bad_config_raises(tmp_path, scene_dirs):
         TrainConfig(loss="l7")
     with pytest.raises(InputError):
         TrainConfig(num_patterns=0)
+
+
+def test_shuffled_windows_are_views_of_every_pixel(scene_dirs):
+    from train.scene_pixels import scene_pixels, shuffle_pixels
+    from train.scene_sets import resolve_scenes
+
+    rig = load_rig()
+    pixels = scene_pixels(resolve_scenes((str(scene_dirs[0]),), "train", rig)[0], rig, True)
+    sampler = shuffle_pixels(pixels, 50, torch.Generator().manual_seed(3))
+    shuffled = sampler.scene
+    assert shuffled.num_pixels == pixels.num_pixels + 49 and sampler.reach.shape == (rig.num_lights, pixels.num_pixels + 49)
+    # The order is a permutation of every pixel, wrapped by window - 1.
+    order = shuffled.transport.pixel_index
+    assert sorted(order[: pixels.num_pixels].tolist()) == sorted(pixels.transport.pixel_index.tolist())
+    assert torch.equal(order[pixels.num_pixels:], order[:49])
+    generator = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        part = sampler.draw(generator)
+        window = shuffled.transport.subset(part).matrix
+        assert window.shape[2] == 50 and window.untyped_storage().data_ptr() == shuffled.transport.matrix.untyped_storage().data_ptr()
+    with pytest.raises(InputError):
+        shuffle_pixels(pixels, 0, generator)
+
+
+def test_default_toml_agrees_with_train_config():
+    from pathlib import Path
+
+    from train.config_io import load_config
+
+    path = Path(__file__).resolve().parents[1] / "configs" / "train" / "default.toml"
+    assert load_config(TrainConfig, path) == TrainConfig()
+
+
+def test_full_solver_loss_has_finite_gradients(scene_dirs):
+    from patterns.families import make_patterns
+    from patterns.parameterization import patterns_to_logits
+    from reconstruct.unrolled_ps import UnrolledPSConfig
+    from train.scene_pixels import scene_pixels
+    from train.scene_sets import resolve_scenes
+
+    with pytest.raises(InputError, match="solver"):
+        TrainConfig(solver="newton")
+    config = _config(scene_dirs, solver="full")
+    rig = load_rig()
+    scenes = learn.training_samplers([scene_pixels(s, rig, True) for s in resolve_scenes(config.scenes, "train", rig)], config)
+    logits = patterns_to_logits(make_patterns("tri_random", 3)).requires_grad_()
+    loss = learn.training_loss(logits, scenes, config, 0, UnrolledPSConfig())
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(logits.grad).all() and float(logits.grad.abs().sum()) > 0

@@ -15,7 +15,7 @@ from capture_sim.scene import Scene, save_scene
 from capture_sim.shapes import cast_camera_rays, make_shape
 from capture_sim.simulator import auto_exposure, sensor
 from capture_sim.synth import synthesize_scene
-from reconstruct.inverse_render import FitConfig, initial_estimate
+from reconstruct.inverse_render import FitConfig, FitProblem, initial_estimate
 from reconstruct.model_selection import (
     Candidate,
     SelectionConfig,
@@ -160,11 +160,10 @@ def _olat_selection(scene: Scene, rig, iterations: int, seed: int = 0):
     split = split_lights(olat.shape[0])
     exposure = auto_exposure(olat)
     captures = sensor(olat * exposure, rig.noise, rig.bit_depth, torch.Generator().manual_seed(seed))
-    return select_basis(
-        captures[split.train], olat_emission(split.train, olat.shape[0], exposure), pixels.points, pixels.lights(), rig.falloff,
-        pixels.transport.pixel_index, scene.height, scene.width, olat_emission(split.validation, olat.shape[0], exposure),
-        captures[split.validation], FitConfig(seed=seed), SelectionConfig(iterations=iterations),
-    )
+    problem = FitProblem(captures[split.train], olat_emission(split.train, olat.shape[0], exposure), pixels.points, pixels.lights(),
+                         rig.falloff, pixels.transport.pixel_index, scene.height, scene.width)
+    return select_basis(problem, olat_emission(split.validation, olat.shape[0], exposure), captures[split.validation],
+                        FitConfig(seed=seed), SelectionConfig(iterations=iterations))
 
 
 @pytest.mark.slow

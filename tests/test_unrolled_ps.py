@@ -5,7 +5,7 @@ from capture_sim.display import display_emission
 from capture_sim.rig import load_rig
 from capture_sim.synth import lambertian_sphere
 from reconstruct.metrics import angular_error_deg
-from reconstruct.unrolled_ps import UnrolledPSConfig, _inverse_apply, solve_ps_unrolled
+from reconstruct.unrolled_ps import UnrolledPSConfig, _inverse_apply, light_reach, solve_ps_unrolled
 from train.scene_pixels import scene_pixels
 
 
@@ -61,3 +61,15 @@ def test_degenerate_inputs_stay_finite():
         (normal.sum() + albedo.sum()).backward()
         assert torch.isfinite(normal).all() and torch.isfinite(albedo).all()
         assert torch.isfinite(emission.grad).all() and torch.isfinite(captures.grad).all()
+
+
+def test_precomputed_reach_and_chunks_give_the_same_solution():
+    patterns = np.load("patterns/data/ddps/initial_tri_gradient.npy")[:2]
+    pixels, captures, emission = _sphere_captures(patterns, torch.float32)
+    lights, falloff = pixels.lights(), pixels.rig.falloff
+    plain, _ = solve_ps_unrolled(captures, emission, pixels.points, lights, falloff)
+    reach = light_reach(pixels.points, lights, falloff)
+    distance = torch.cdist(pixels.points, lights).T
+    torch.testing.assert_close(reach, falloff(distance) / distance)
+    chunked, _ = solve_ps_unrolled(captures, emission, pixels.points, lights, falloff, UnrolledPSConfig(chunk_pixels=100), reach=reach)
+    torch.testing.assert_close(chunked, plain)

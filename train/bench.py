@@ -6,6 +6,7 @@ reset before the measured phase where Linux allows it.
 """
 from __future__ import annotations
 
+import gc
 import math
 import platform
 import statistics
@@ -15,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from capture_sim.atomic import write_json
 from capture_sim.errors import InputError
@@ -26,9 +28,11 @@ from patterns.families import make_patterns
 from patterns.parameterization import logits_to_patterns, patterns_to_logits
 from reconstruct.photometric_stereo import solve_ps
 from reconstruct.unrolled_ps import solve_ps_unrolled
-from train.capture import capture_scene
+from train.capture import capture_scene, scene_exposure
 from train.learn import TrainConfig, normal_loss
-from train.scene_pixels import ScenePixels
+from train.evaluate import EvalSettings, evaluate_scene
+from train.scene_pixels import ScenePixels, scene_pixels, shuffle_pixels
+from train.scene_sets import DEFAULT_SIZE, default_split
 
 FULL_SIZE = (512, 612)
 PUBLISHED_PS_FORWARD_S = 1.2
@@ -148,18 +152,25 @@ def bench_ps(num_patterns: int = 4, repeats: int = 5, seed: int = 0) -> dict:
     """Forward+backward of the analytic photometric stereo on all 512 x 612 pixels, M patterns.
 
     Gradients flow to the patterns through the effective emission and the captures, as in
-    learning. The simulated captures are made once, outside the timed region.
+    learning. The simulated captures are made once, outside the timed region, and the scene's light
+    transport is released before the solver runs. ``full_fwd_bwd_s`` uses torch's default thread
+    count; ``full_fwd_bwd_s_1_thread`` repeats it on one thread.
     """
     pixels = full_frame_pixels()
     patterns = make_patterns("mono_gradient", num_patterns).float()
     with torch.no_grad():
         capture = capture_scene(pixels, patterns, 1.0, "auto", torch.Generator().manual_seed(seed))
-    lights, falloff = pixels.lights(), pixels.rig.falloff
+    lights, falloff, points, true_normal = pixels.lights(), pixels.rig.falloff, pixels.points, pixels.normal
+    num_pixels, num_lights = pixels.num_pixels, pixels.transport.num_lights
+    # The solver needs only the captures: release the scene's light transport (3 x K x N floats,
+    # ~540 MB) so that the peak memory measures the solver, not the simulator's input.
+    del pixels
+    gc.collect()
 
     def forward_backward():
         captures = capture.captures.clone().requires_grad_()
         emission = capture.emission.clone().requires_grad_()
-        result = solve_ps(captures, emission, pixels.points, lights, falloff)
+        result = solve_ps(captures, emission, points, lights, falloff)
         (result.normal.sum() + result.albedo.sum()).backward()
         return result
 
@@ -167,37 +178,58 @@ def bench_ps(num_patterns: int = 4, repeats: int = 5, seed: int = 0) -> dict:
     peak_reset = reset_peak_rss()
     seconds = median_seconds(forward_backward, repeats, warmup=0)
     peak_mb = peak_rss_mb()
-    forward = median_seconds(lambda: solve_ps(capture.captures, capture.emission, pixels.points, lights, falloff), repeats, warmup=0)
-    errors = torch.rad2deg(torch.acos((result.normal.detach() * pixels.normal).sum(-1).clamp(-1, 1)))
+    forward = median_seconds(lambda: solve_ps(capture.captures, capture.emission, points, lights, falloff), repeats, warmup=0)
+    # The solver is many small per-pixel operations besides the large matrix products: measure
+    # whether torch's intra-op threads pay off on this machine.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        single_thread = median_seconds(forward_backward, repeats, warmup=0)
+    finally:
+        torch.set_num_threads(threads)
+    errors = torch.rad2deg(torch.acos((result.normal.detach() * true_normal).sum(-1).clamp(-1, 1)))
     return {
         "target": "ps",
         "M": num_patterns,
-        "pixels": pixels.num_pixels,
-        "lights": pixels.transport.num_lights,
+        "pixels": num_pixels,
+        "lights": num_lights,
         "full_fwd_bwd_s": seconds,
         "full_fwd_s": forward,
+        "threads": threads,
+        "full_fwd_bwd_s_1_thread": single_thread,
         "peak_rss_mb": peak_mb,
         "peak_measured": "solver phase (VmHWM reset before it)" if peak_reset else "whole process",
         "mae_deg_default_noise": float(errors.mean()),
         "published_fwd_s_108k_pixels": PUBLISHED_PS_FORWARD_S,
-        "speedup_vs_published_fwd_same_pixels": PUBLISHED_PS_FORWARD_S * pixels.num_pixels / 108_000 / seconds,
+        "speedup_vs_published_fwd_same_pixels": PUBLISHED_PS_FORWARD_S * num_pixels / 108_000 / seconds,
         "repeats": repeats,
         "machine": machine_info(),
     }
 
 
 def bench_train(num_patterns: int = 4, sampled_pixels: int = 100_000, repeats: int = 5, seed: int = 0) -> dict:
-    """One learning step (simulate + unrolled reconstruction + backward), M patterns, sampled pixels."""
+    """One learning step (simulate + unrolled reconstruction + backward), M patterns, sampled pixels.
+
+    As in learning (``train.learn``), the scene's pixels are shuffled once when the run is prepared
+    (with the per-pixel light geometry ``light_reach``), and each step takes a random window of them,
+    a view with no gather; the step's auto exposure still covers every pixel of the frame.
+    """
     pixels = full_frame_pixels()
-    columns = torch.randperm(pixels.num_pixels, generator=torch.Generator().manual_seed(seed))[:sampled_pixels]
+    prepare_start = time.perf_counter()
+    sampler = shuffle_pixels(pixels, sampled_pixels, torch.Generator().manual_seed(seed))
+    prepare_s = time.perf_counter() - prepare_start
     logits = patterns_to_logits(make_patterns("tri_random", num_patterns, seed=seed)).requires_grad_()
     config = TrainConfig(num_patterns=num_patterns)
+    generator = torch.Generator().manual_seed(seed)
+    scene = sampler.scene
 
     def step():
         logits.grad = None
-        capture = capture_scene(pixels, logits_to_patterns(logits), 1.0, "auto", torch.Generator().manual_seed(seed), columns)
-        normal, _ = solve_ps_unrolled(capture.captures, capture.emission, pixels.points[columns], pixels.lights(), pixels.rig.falloff)
-        normal_loss(normal, pixels.normal[columns], config.loss).backward()
+        part = sampler.draw(generator)
+        patterns = logits_to_patterns(logits)
+        capture = capture_scene(scene, patterns, 1.0, scene_exposure(pixels, patterns), generator, part)
+        normal, _ = solve_ps_unrolled(capture.captures, capture.emission, scene.points[part], scene.lights(), scene.rig.falloff, reach=sampler.reach[:, part])
+        normal_loss(normal, scene.normal[part], config.loss).backward()
 
     step()
     reset_peak_rss()
@@ -207,6 +239,7 @@ def bench_train(num_patterns: int = 4, sampled_pixels: int = 100_000, repeats: i
         "M": num_patterns,
         "sampled_pixels": sampled_pixels,
         "step_s": seconds,
+        "prepare_once_s": prepare_s,
         "published_step_s": PUBLISHED_TRAIN_STEP_S,
         "speedup_vs_published": PUBLISHED_TRAIN_STEP_S / seconds,
         "peak_rss_mb": peak_rss_mb(),
@@ -220,6 +253,101 @@ def bench_invrender(repeats: int = 5) -> dict:
     from train.invrender_command import bench_invrender as run
 
     return {"target": "invrender", **run(repeats=repeats), "machine": machine_info()}
+
+
+SWEEP_NOISE_SCALES = (0.0, 0.25, 1.0, 4.0, 10.0)
+"""Default noise levels of the sweep: multiples of the rig's noise variances (0 = ideal sensor)."""
+SWEEP_METHODS = (("woodham", "olat", 0), ("ps", "mono_gradient", 4), ("ps", "tri_complementary", 2), ("ps", "tri_gradient", 2))
+"""Default (method, pattern family or 'olat', M) of the sweep (issue 3, item 5)."""
+
+
+def noise_sweep(scenes: list[ScenePixels], noise_scales=SWEEP_NOISE_SCALES, methods=SWEEP_METHODS, seed: int = 0, progress: bool = True) -> dict:
+    """Normal error against noise level for several methods and pattern sets.
+
+    Every (method, patterns) pair is evaluated on every scene at every noise scale with
+    ``train.evaluate.evaluate_scene`` (auto exposure, the same noise seeds for every method).
+
+    Args:
+        scenes: prepared scenes with true normals.
+        noise_scales: multipliers of the rig's noise variances (0 = noise-free, unquantised).
+        methods: (method 'ps' or 'woodham', pattern family name or 'olat', M) triples; M is
+            ignored for 'olat' (the full stack).
+        seed: noise seed (scene i at noise level j uses seed (seed * 100 + j) * 1000 + i).
+        progress: show a progress bar.
+
+    Returns:
+        {"noise_scales": [...], "scenes": [names], "methods": [{"label", "method", "patterns",
+        "M", "mae": [...], "median": [...], "invalid_fraction": [...], "scene_mae": [[...]]}]}
+        where mae, median and invalid_fraction are means over scenes per noise scale (degrees)
+        and scene_mae[j][i] is scene i's MAE at noise scale j.
+    """
+    if not scenes:
+        raise InputError("the noise sweep needs at least one scene")
+    if not noise_scales or any(scale < 0 for scale in noise_scales):
+        raise InputError("noise scales must be a non-empty list of numbers >= 0")
+    rig = scenes[0].rig
+    rows = []
+    bar = tqdm(total=len(methods) * len(noise_scales) * len(scenes), desc="noise sweep", unit="solve", disable=not progress)
+    for method, family, num_patterns in methods:
+        patterns = "olat" if family == "olat" else make_patterns(family, num_patterns, rig.rows, rig.cols).float()
+        label = f"{method} / OLAT ({rig.num_lights})" if family == "olat" else f"{method} / {family} M={num_patterns}"
+        row = {"label": label, "method": method, "patterns": family, "M": rig.num_lights if family == "olat" else num_patterns}
+        per_scale = []
+        for level, scale in enumerate(noise_scales):
+            settings = EvalSettings(method=method, noise_scale=float(scale), seed=seed * 100 + level)
+            metrics = []
+            for index, pixels in enumerate(scenes):
+                metrics.append(evaluate_scene(pixels, patterns, settings, index).metrics)
+                bar.update()
+            per_scale.append(metrics)
+        for key in ("mae", "median", "invalid_fraction"):
+            row[key] = [float(np.mean([m[key] for m in metrics])) for metrics in per_scale]
+        row["scene_mae"] = [[m["mae"] for m in metrics] for metrics in per_scale]
+        rows.append(row)
+    bar.close()
+    return {"noise_scales": [float(scale) for scale in noise_scales], "scenes": [pixels.name for pixels in scenes], "methods": rows}
+
+
+def sweep_chart(document: dict, path: Path, caption: str) -> None:
+    """Chart of a ``noise_sweep`` document: mean MAE (degrees) against noise scale, one line per method."""
+    from train.figures import save_figure, plt
+
+    fig, axes = plt.subplots(figsize=(7.0, 4.5))
+    scales = document["noise_scales"]
+    # A symmetric-log axis shows the noise-free point (0) next to the multiplicative levels.
+    for row in document["methods"]:
+        axes.plot(scales, row["mae"], marker="o", label=row["label"])
+    axes.set_xscale("symlog", linthresh=0.25)
+    axes.set_xticks(scales, labels=[f"{scale:g}" for scale in scales])
+    axes.minorticks_off()
+    axes.set_ylim(bottom=0)
+    axes.set_xlabel("noise scale (x the rig's noise variances; 0 = ideal sensor)")
+    axes.set_ylabel("mean angular error (degrees)")
+    axes.set_title(f"Normal error against noise ({len(document['scenes'])} scenes)")
+    axes.grid(True, alpha=0.3)
+    axes.legend()
+    fig.text(0.01, -0.02, caption, fontsize=8, ha="left", va="top", wrap=True)
+    save_figure(fig, path)
+
+
+def run_sweep(json_path: Path | None, size: tuple[int, int] = DEFAULT_SIZE, noise_scales=SWEEP_NOISE_SCALES, methods=SWEEP_METHODS, seed: int = 0, progress: bool = True) -> dict:
+    """``displex bench ps --sweep``: the noise sweep on the default synthetic test scenes.
+
+    Writes the JSON to ``json_path`` and the chart next to it (same name, .png).
+    """
+    rig = load_rig()
+    scenes = [scene_pixels(scene, rig, require_normals=True) for scene in default_split("test", rig, size, seed)]
+    start = time.perf_counter()
+    document = noise_sweep(scenes, noise_scales, methods, seed, progress)
+    document.update({"target": "ps_sweep", "size": list(size), "rig": rig.name, "seconds": time.perf_counter() - start, "machine": machine_info()})
+    if json_path is not None:
+        write_json(json_path, document)
+        caption = (
+            f"Default synthetic test scenes at {size[0]}x{size[1]}, auto exposure; MAE averaged over the scenes' masked "
+            "pixels, then over scenes. Noise scale multiplies the rig's shot and read noise variances."
+        )
+        sweep_chart(document, Path(json_path).with_suffix(".png"), caption)
+    return document
 
 
 BENCHMARKS: dict[str, Callable[..., dict]] = {"sim": bench_sim, "ps": bench_ps, "train": bench_train, "invrender": bench_invrender}

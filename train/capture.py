@@ -8,6 +8,19 @@ from capture_sim.simulator import Capture, auto_exposure, noise_free_radiance, s
 from train.scene_pixels import ScenePixels
 
 
+def scene_exposure(pixels: ScenePixels, patterns: torch.Tensor) -> float:
+    """Auto exposure (DESIGN section 3) of a scene under a pattern set, over all its pixels, no gradient.
+
+    Args:
+        pixels: the prepared scene.
+        patterns: (M, R, C, 3) set values in [0, 1].
+    """
+    rig = pixels.rig
+    with torch.no_grad():
+        emitted = display_emission(patterns, rig.backlight_flat(patterns.dtype), rig.gamma, rig.scale)
+        return auto_exposure(noise_free_radiance(emitted, pixels.transport))
+
+
 def capture_scene(
     pixels: ScenePixels,
     patterns: torch.Tensor,
@@ -25,16 +38,15 @@ def capture_scene(
             sensor (no noise and no quantisation; clipping stays).
         exposure: "auto" (over all the scene's masked pixels, no gradient) or a fixed number.
         generator: noise generator.
-        columns: optional (P,) indices of a pixel subset to simulate (exposure still uses all).
+        columns: optional (P,) indices or a slice of a pixel subset to simulate (exposure still
+            uses all; a slice selects a view, without copying the transport).
 
     Returns:
         Capture with (M, N or P, 3) captures, (M, K, 3) effective emission and the exposure.
     """
     rig = pixels.rig
     if exposure == "auto":
-        with torch.no_grad():
-            emitted = display_emission(patterns, rig.backlight_flat(patterns.dtype), rig.gamma, rig.scale)
-            exposure = auto_exposure(noise_free_radiance(emitted, pixels.transport))
+        exposure = scene_exposure(pixels, patterns)
     transport = pixels.transport if columns is None else pixels.transport.subset(columns)
     noisy = noise_scale > 0
     return simulate(

@@ -128,6 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
     invrender.add_argument("--noise", choices=NOISE_CHOICES, default="default")
     invrender.add_argument("--seed", type=int, default=0)
     invrender.add_argument("--rig", default=DEFAULT_RIG)
+    invrender.add_argument("--threads", type=int, default=1, help="torch threads (1: robust on a busy machine)")
     invrender.add_argument("--json", type=Path, default=None)
     invrender.add_argument("--out", type=Path, default=None)
     invrender.set_defaults(handler=_invrender)
@@ -141,6 +142,10 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("target", help="what to benchmark: sim, ps, train, invrender")
     bench.add_argument("--json", type=Path, default=None, help="write the results here")
     bench.add_argument("--repeats", type=int, default=5, help="timed runs per measurement (median)")
+    bench.add_argument(
+        "--sweep", action="store_true", help="with target ps: normal error against noise level for several methods (JSON and a chart next to it)"
+    )
+    bench.add_argument("--size", type=_size, default=(128, 153), help="image size HxW of the --sweep scenes (default 128x153)")
     bench.set_defaults(handler=_bench)
 
     return parser
@@ -224,11 +229,12 @@ def _invrender(args) -> None:
 
     from train.invrender_command import InvRenderConfig, run_invrender
 
-    changes = dict(scene=args.scene, patterns=args.patterns, basis=args.basis, noise=args.noise, seed=args.seed, rig=args.rig, json=args.json, out=args.out)
+    changes = dict(scene=args.scene, patterns=args.patterns, basis=args.basis, noise=args.noise, seed=args.seed, rig=args.rig, json=args.json, out=args.out,
+                   threads=args.threads)
     if args.iterations is not None:
         changes["iterations"] = args.iterations
     document = run_invrender(InvRenderConfig(**changes))
-    print(json.dumps({key: document[key] for key in ("mae", "psnr", "ssim", "seconds", "J") if key in document}, indent=2))
+    print(json.dumps({key: document[key] for key in ("mae", "psnr", "ssim", "seconds", "cpu_seconds", "J") if key in document}, indent=2))
 
 
 def _demo(args) -> None:
@@ -246,6 +252,17 @@ def _bench(args) -> None:
 
     if args.repeats < 1:
         raise InputError("--repeats must be at least 1")
+    if args.sweep:
+        if args.target != "ps":
+            raise InputError(f"--sweep applies to target ps, not {args.target!r}")
+        from train.bench import run_sweep
+
+        document = run_sweep(args.json, args.size)
+        for row in document["methods"]:
+            print(f"{row['label']:36s} " + "  ".join(f"{scale:g}: {mae:.3f}" for scale, mae in zip(document["noise_scales"], row["mae"])))
+        if args.json is not None:
+            print(f"wrote {args.json} and {args.json.with_suffix('.png')}")
+        return
     print(json.dumps(run_bench(args.target, args.json, args.repeats), indent=2))
 
 

@@ -16,7 +16,7 @@ from capture_sim.simulator import Capture
 from train.scene_pixels import ScenePixels
 
 
-def rerender_loss(normal: torch.Tensor, albedo: torch.Tensor, capture: Capture, pixels: ScenePixels, columns: torch.Tensor) -> torch.Tensor:
+def rerender_loss(normal: torch.Tensor, albedo: torch.Tensor, capture: Capture, pixels: ScenePixels, columns: torch.Tensor | slice) -> torch.Tensor:
     """RMSE between captures and the estimate rendered under the same patterns.
 
     Args:
@@ -24,7 +24,7 @@ def rerender_loss(normal: torch.Tensor, albedo: torch.Tensor, capture: Capture, 
         albedo: (P, 3) estimated albedo a = rho / pi.
         capture: the simulated capture (captures (M, P, 3), effective emission (M, K, 3)).
         pixels: the scene the pixels come from.
-        columns: (P,) indices of the sampled pixels in the scene.
+        columns: (P,) indices, or a slice, of the sampled pixels in the scene.
 
     Returns:
         Scalar RMSE in units of full scale.

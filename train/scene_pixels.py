@@ -14,6 +14,7 @@ from capture_sim.errors import InputError
 from capture_sim.rig import Rig
 from capture_sim.scene import Scene, rig_for_scene
 from capture_sim.simulator import LightTransport, light_transport
+from reconstruct.unrolled_ps import light_reach
 
 
 @dataclass(frozen=True, eq=False)
@@ -58,3 +59,57 @@ def scene_pixels(scene: Scene, rig: Rig, require_normals: bool = False) -> Scene
     normal = None if scene.normal is None else torch.as_tensor(scene.normal, dtype=torch.float32).reshape(-1, 3)[flat_mask]
     scene_rig.falloff.check(torch.cdist(points, scene_rig.lights()))
     return ScenePixels(scene.name, scene_rig, transport, points, normal, np.asarray(scene.mask))
+
+
+@dataclass(frozen=True, eq=False)
+class ShuffledPixels:
+    """A scene's pixels in one seeded random order, for sampling windows without a gather.
+
+    The first ``window - 1`` pixels of the order are repeated at the end, so every cyclic window
+    of ``window`` consecutive positions is a plain slice (a view) of the tensors below; a window
+    starting at a uniformly random position holds every pixel with the same probability as a fresh
+    random subset would.
+
+    Attributes:
+        source: the scene in its original order (auto exposure uses all of its pixels).
+        scene: the same scene with transport, points and normals in shuffled, wrapped order
+            (num_pixels + window - 1 columns).
+        reach: (K, num_pixels + window - 1) ``light_reach`` of the shuffled points (geometry only,
+            computed once instead of every step).
+        window: pixels per draw, min(requested, number of pixels).
+    """
+
+    source: ScenePixels
+    scene: ScenePixels
+    reach: torch.Tensor
+    window: int
+
+    @property
+    def num_pixels(self) -> int:
+        return self.source.num_pixels
+
+    def draw(self, generator: torch.Generator) -> slice:
+        """A random window of ``window`` pixels, as a slice into ``scene`` and ``reach``."""
+        start = int(torch.randint(self.num_pixels, (1,), generator=generator))
+        return slice(start, start + self.window)
+
+
+def shuffle_pixels(pixels: ScenePixels, window: int, generator: torch.Generator) -> ShuffledPixels:
+    """Shuffle a scene's pixels once (order drawn from ``generator``) for windowed sampling.
+
+    Args:
+        pixels: the prepared scene; needs true normals.
+        window: pixels per draw (clamped to the scene's pixel count), >= 1.
+        generator: seeds the order, so the same seed gives the same windows.
+    """
+    if window < 1:
+        raise InputError(f"window must be >= 1, got {window}")
+    window = min(window, pixels.num_pixels)
+    order = torch.randperm(pixels.num_pixels, generator=generator)
+    order = torch.cat([order, order[: window - 1]])
+    transport = pixels.transport.subset(order)
+    points = pixels.points[order]
+    normal = None if pixels.normal is None else pixels.normal[order]
+    scene = ScenePixels(pixels.name, pixels.rig, transport, points, normal, pixels.mask)
+    reach = light_reach(points, pixels.lights(), pixels.rig.falloff)
+    return ShuffledPixels(pixels, scene, reach, window)
