@@ -111,3 +111,43 @@ def test_evaluate_json_matches_saved_normal_maps(tmp_path, scene_file):
     assert abs(np.degrees(np.arccos(cosine)).mean() - row["mae"]) < 0.01
     assert abs(document["mean_mae"] - row["mae"]) < 1e-9
     assert (out / "summary.png").is_file() and (out / "blob_normals.png").is_file()
+
+
+@pytest.mark.parametrize(
+    "body,message",
+    [
+        ("heuristics = ['checkerboard']\n", "unknown pattern family"),
+        ("[[external]]\nname = 'gone'\npath = 'patterns/data/ddps/no_such_file.npy'\n", "not found"),
+        ("pattern_counts = [2, 0]\n", "positive integers"),
+        ("pattern_counts = [2]\n[[search]]\nfamily = 'tri_complementary'\nM = 4\n", "not in pattern_counts"),
+        ("pattern_counts = [2]\nlearned_counts = [3]\n", "not in pattern_counts"),
+        ("noise_scales = [1.0]\n[solver]\nrestart_condition = -1.0\n", "restart_condition"),
+    ],
+)
+def test_compare_refuses_bad_configs(tmp_path, capsys, body, message):
+    config = tmp_path / "configs" / "compare" / "bad.toml"
+    config.parent.mkdir(parents=True)
+    config.write_text(body)
+    assert run(["compare", "--config", str(config), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("displex: error:") and "\n" not in err and message in err, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_search_command_writes_trace_and_tensorboard_log(tmp_path, scene_file, capsys):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out, logdir = tmp_path / "best.npz", tmp_path / "logs"
+    argv = ["search", "--family", "tri_complementary", "--M", "2", "--algorithm", "LN_SBPLX", "--maxeval", "4", "--seed", "1",
+            "--scenes", str(scene_file), "--logdir", str(logdir), "--out", str(out)]
+    assert run(argv) == 0
+    assert "->" in capsys.readouterr().out
+    rows = (tmp_path / "best.trace.csv").read_text().splitlines()[1:]
+    events = EventAccumulator(str(logdir))
+    events.Reload()
+    values = [event.value for event in events.Scalars("search/mae_deg")]
+    bests = [event.value for event in events.Scalars("search/best_mae_deg")]
+    assert len(values) == len(rows) == len(bests) >= 2
+    assert np.allclose(values, [float(row.split(",")[-2]) for row in rows], rtol=1e-5)
+    assert np.allclose(bests, np.minimum.accumulate(values), rtol=1e-6)
+    assert run(argv[:-1] + [str(tmp_path / "other.npz"), "--maxeval", "0"]) == 2

@@ -1,9 +1,11 @@
 """Comparison: config loading, the derived tables against plain computations, and a tiny end-to-end run."""
+import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from capture_sim.errors import InputError
 from capture_sim.rig import load_rig
@@ -56,6 +58,9 @@ def test_shipped_configs_load():
     assert default.search[0].num_patterns == 2
     demo = load_compare_config("demo")
     assert demo.train_config(10, 0).steps < demo.train_config(2, 0).steps
+    for config in (default, demo):
+        assert set(config.learned_pattern_counts()) == {2, 4, 10} and config.rerender_counts
+        assert config.train_config(4, 0, rerender=True).rerender_weight > 0 == config.train_config(4, 0).rerender_weight
 
 
 def test_config_errors(scenes):
@@ -71,6 +76,14 @@ def test_config_errors(scenes):
         tiny_config(scenes, heuristics=["checkerboard"])
     with pytest.raises(InputError, match="algorithm"):
         tiny_config(scenes, search=[{"family": "tri_complementary", "M": 2, "algorithm": "simplex"}])
+    with pytest.raises(InputError, match="not in pattern_counts"):
+        tiny_config(scenes, rerender_counts=[4])
+    with pytest.raises(InputError, match="not found"):
+        tiny_config(scenes, external=[{"name": "gone", "path": "patterns/data/ddps/missing.npy"}])
+    with pytest.raises(InputError, match="solver"):
+        tiny_config(scenes, solver={"max_alternations": 0})
+    with pytest.raises(InputError, match="eval_workers"):
+        tiny_config(scenes, eval_workers=0)
 
 
 def test_relative_paths_resolve_against_the_repository_root(scenes):
@@ -116,19 +129,25 @@ def test_summary_tables_against_plain_computation():
     assert by_noise[0.5]["best_heuristic"] == "a" and by_noise[0.5]["ratio"] == pytest.approx(8.5 / 10.0)
     assert by_noise[2.0]["best_heuristic"] == "b" and by_noise[2.0]["ratio"] == pytest.approx(18.0 / 15.0)
     assert by_noise[2.0]["best_tuned"] == "s" and by_noise[2.0]["ratio_tuned"] == pytest.approx(18.0 / 14.0)
+    assert summary["rerender"] == []
+    results["methods"].append(dict(results["methods"][3], id="rr", kind="rerender", series="learned_rerender", info={"rerender_weight": 0.5},
+                                   evaluations=[dict(e, mae=mae) for e, mae in zip(results["methods"][3]["evaluations"], (6.0, 20.0))]))
+    rerender = {r["noise_scale"]: r for r in summary_tables(results)["rerender"]}
+    assert rerender[0.5]["normal_only_mae"] == 8.0 and rerender[0.5]["ratio"] == pytest.approx(6.0 / 8.0)
+    assert rerender[2.0]["ratio"] == pytest.approx(20.0 / 17.0) and rerender[2.0]["weight"] == 0.5
     spread = {s["noise_scale"]: s for s in summary["seed_spread"]}
     assert spread[0.5]["seeds"] == [0, 1] and spread[0.5]["min"] == 8.0 and spread[0.5]["max"] == 9.0
     assert spread[2.0]["std"] == pytest.approx(np.std([17.0, 19.0]))
 
 
 def test_run_compare_end_to_end_and_resume(scenes, tmp_path):
-    config = tiny_config(scenes)
+    config = tiny_config(scenes, rerender_counts=[2])
     results = run_compare(config, tmp_path, progress=False)
     for key in ("config", "rig", "exposure_ms", "methods", "skipped", "summary", "timings", "test_scenes", "noise_scales"):
         assert key in results
     assert json.loads((tmp_path / "results.json").read_text())["exposure_ms"] == 440.0
     kinds = {m["id"]: m["kind"] for m in results["methods"]}
-    assert kinds == {"heuristic_tri_complementary_M2": "heuristic", "learned_M2_seed0": "learned",
+    assert kinds == {"heuristic_tri_complementary_M2": "heuristic", "learned_M2_seed0": "learned", "learned_rerender_M2_seed0": "rerender",
                      "external_ddps_learned_M2": "external", "olat_woodham": "reference"}
     for method in results["methods"]:
         (evaluation,) = method["evaluations"]
@@ -142,7 +161,8 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path):
     assert results["summary"]["learned_vs_heuristic"][0]["best_heuristic"] == "tri_complementary"
 
     report = (tmp_path / "report.md").read_text()
-    for text in ("method x M", "MAE against noise level", "How the advantage", "Capture time", "Compute time", "OLAT + Woodham"):
+    assert results["summary"]["rerender"][0]["M"] == 2
+    for text in ("method x M", "MAE against noise level", "How the advantage", "Capture time", "Compute time", "OLAT + Woodham", "normal + re-rendering"):
         assert text in report
     for file_name in CHARTS.values():
         assert (tmp_path / file_name).stat().st_size > 0 and f"({file_name})" in report
@@ -169,3 +189,30 @@ def test_demo_runs_on_a_tiny_config(tmp_path, capsys):
     assert learned["info"]["steps"] == 1
     assert {m["kind"] for m in results["methods"]} == {"heuristic", "learned", "search"}
     assert "report.md" in capsys.readouterr().out
+
+
+def test_parallel_subset_evaluation_matches_in_process_and_deduplicates(scenes, tmp_path):
+    """Workers and duplicate pattern sets change nothing; a pixel subset is fixed per scene."""
+    from train.compare import Method, evaluate_methods, evaluation_columns
+    from train.search import prepare_scenes
+
+    rig = load_rig()
+    test_scenes = prepare_scenes([scenes / "test"], "test", rig, SIZE, 0)
+    config = tiny_config(scenes, eval_pixels_per_scene=40, solver={"max_shadow_iterations": 4})
+    columns = evaluation_columns(test_scenes, 40, 0)
+    assert all(c is not None and c.numel() == 40 and (c.diff() > 0).all() for c in columns)
+    assert all(torch.equal(a, b) for a, b in zip(columns, evaluation_columns(test_scenes, 40, 0)))
+
+    def methods():
+        patterns = np.load(REPO / "patterns" / "data" / "ddps" / "initial_tri_complementary.npy").astype(np.float32)
+        return [Method("a", "heuristic", "a", "a", 2, patterns), Method("b", "external", "b", "b", 2, patterns.copy()),
+                Method("olat_woodham", "reference", "olat_woodham", "OLAT", rig.num_lights, "olat")]
+
+    serial, parallel = methods(), methods()
+    evaluate_methods(serial, test_scenes, config, 440.0, progress=False)
+    evaluate_methods(parallel, test_scenes, dataclasses.replace(config, eval_workers=2), 440.0, progress=False)
+    assert serial[1].info["same_patterns_as"] == "a" and serial[1].evaluations[0]["mae"] == serial[0].evaluations[0]["mae"]
+    for one, other in zip(serial, parallel):
+        for first, second in zip(one.evaluations, other.evaluations):
+            assert [s["mae"] for s in first["scenes"]] == [s["mae"] for s in second["scenes"]]
+    assert serial[2].evaluations[0]["mae"] < serial[0].evaluations[0]["mae"]

@@ -90,15 +90,22 @@ def build_parser() -> argparse.ArgumentParser:
     train.set_defaults(handler=_train)
 
     search = commands.add_parser("search", help="NLopt search over a heuristic family's parameters")
-    search.add_argument("--family", required=True)
-    search.add_argument("--M", type=int, dest="num_patterns", required=True)
-    search.add_argument("--algorithm", default="LN_BOBYQA", help="LN_BOBYQA, LN_COBYLA, LN_SBPLX, GN_CRS2_LM, GN_ESCH, GN_DIRECT_L, LD_MMA, LD_LBFGS")
-    search.add_argument("--maxeval", type=int, default=40)
-    search.add_argument("--maxtime", type=float, default=0.0, help="seconds (0 = no limit)")
-    search.add_argument("--seed", type=int, default=0)
-    search.add_argument("--scenes", type=Path, nargs="+", default=(), help="scenes to optimise on (default: synthetic train split)")
-    search.add_argument("--out", type=Path, required=True, help="best pattern file; the trace goes to <stem>.trace.csv")
+    search.add_argument("--config", type=Path, default=None, help="TOML in configs/search/ (flags override it)")
+    search.add_argument("--family", required=True, help="family name (see `displex patterns list`)")
+    search.add_argument("--M", type=int, dest="num_patterns", required=True, help="number of patterns")
+    search.add_argument("--algorithm", default=None, help="LN_BOBYQA (default), LN_COBYLA, LN_SBPLX, GN_CRS2_LM, GN_ESCH, GN_DIRECT_L, LD_MMA, LD_LBFGS")
+    search.add_argument("--maxeval", type=int, default=None, help="largest number of objective evaluations")
+    search.add_argument("--maxtime", type=float, default=None, help="wall-clock limit in seconds (0 = none)")
+    search.add_argument("--seed", type=int, default=None)
+    search.add_argument("--scenes", type=Path, nargs="+", default=None, help="scenes to optimise on (default: synthetic train split)")
+    search.add_argument("--logdir", type=Path, default=None, help="TensorBoard folder: MAE and best-so-far per evaluation")
+    search.add_argument("--out", type=Path, required=True, help="best pattern file; the trace goes to <stem>.trace.csv and .trace.png")
     search.set_defaults(handler=_search)
+
+    compare = commands.add_parser("compare", help="compare learned, searched, heuristic and external patterns on held-out scenes")
+    compare.add_argument("--config", type=Path, required=True, help="TOML in configs/compare/ (or a preset name: default, demo)")
+    compare.add_argument("--out", type=Path, default=None, help="output folder (default: the config's `out`)")
+    compare.set_defaults(handler=_compare)
 
     export = commands.add_parser("export", help="write display frames, manifest and contact sheet for the rig")
     export.add_argument("--patterns", type=Path, required=True)
@@ -126,9 +133,9 @@ def build_parser() -> argparse.ArgumentParser:
     invrender.add_argument("--out", type=Path, default=None)
     invrender.set_defaults(handler=_invrender)
 
-    demo = commands.add_parser("demo", help="the main job: scenes, learning, comparison, report and charts")
+    demo = commands.add_parser("demo", help="the main job: scenes, learning, search, comparison, report and charts")
     demo.add_argument("--out", type=Path, default=Path("runs/demo"))
-    demo.add_argument("--steps", type=int, default=None, help="learning steps per pattern set")
+    demo.add_argument("--steps", type=int, default=None, help="learning steps of every learned pattern set (default: configs/compare/demo.toml)")
     demo.set_defaults(handler=_demo)
 
     bench = commands.add_parser("bench", help="benchmarks written as JSON (medians of several runs)")
@@ -173,11 +180,29 @@ def _train(args) -> None:
 
 
 def _search(args) -> None:
-    from train.nlopt_search import SearchConfig, run_search
+    from train.config_io import load_config
+    from train.search import SearchConfig, run_search
 
-    config = SearchConfig(args.family, args.num_patterns, args.algorithm, args.maxeval, args.maxtime, seed=args.seed, scenes=tuple(str(p) for p in args.scenes))
-    summary = run_search(config, args.out)
-    print(f"{summary['family']} M={summary['M']} {summary['algorithm']}: MAE {summary['start_mae']:.2f} -> {summary['best_mae']:.2f} deg in {summary['evaluations']} evaluations ({summary['stop']})")
+    overrides = {
+        "family": args.family,
+        "num_patterns": args.num_patterns,
+        "algorithm": args.algorithm,
+        "maxeval": args.maxeval,
+        "maxtime": args.maxtime,
+        "seed": args.seed,
+        "scenes": None if args.scenes is None else tuple(str(p) for p in args.scenes),
+    }
+    summary = run_search(load_config(SearchConfig, args.config, overrides), args.out, logdir=args.logdir)
+    print(f"{summary['family']} M={summary['num_patterns']} {summary['algorithm']}: MAE {summary['start_mae']:.2f} -> "
+          f"{summary['best_mae']:.2f} deg in {summary['evaluations']} evaluations ({summary['stop_reason']}); trace {summary['trace_csv']}")
+
+
+def _compare(args) -> None:
+    from train.compare import load_compare_config, run_compare
+
+    config = load_compare_config(args.config)
+    results = run_compare(config, args.out if args.out is not None else Path(config.out))
+    print(f"compared {len(results['methods'])} pattern sets in {results['timings']['total_seconds']:.0f} s; report: {results['report']}")
 
 
 def _export(args) -> None:
@@ -213,11 +238,11 @@ def _invrender(args) -> None:
 
 
 def _demo(args) -> None:
-    from train.demo import DemoConfig, run_demo
+    from train.compare import run_demo
 
-    config = DemoConfig() if args.steps is None else DemoConfig(train_steps=args.steps)
-    run_demo(args.out, config)
-    print(f"wrote {args.out / 'report.md'}, results.json and charts")
+    if args.steps is not None and args.steps < 0:
+        raise InputError("--steps must be >= 0")
+    run_demo(args.out, steps=args.steps)
 
 
 def _bench(args) -> None:

@@ -15,7 +15,9 @@ A rerun with the same out folder reuses learned and searched pattern files whose
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +34,7 @@ from patterns.families import FAMILIES, PRESETS, get_family, make_patterns
 from patterns.io import load_patterns, save_patterns
 from train.config_io import config_from_dict, config_to_dict
 from train.evaluate import EvalSettings, evaluate_scene
+from reconstruct.photometric_stereo import PSConfig
 from train.learn import TrainConfig, train_patterns
 from train.search import SearchConfig, prepare_scenes, run_search
 
@@ -109,6 +112,21 @@ class CompareConfig:
     """Pattern files to compare ([[external]] tables: name, path)."""
     include_olat_woodham: bool = True
     """Evaluate the reference: the full OLAT stack (M = K) with Woodham least squares."""
+    rerender_counts: tuple[int, ...] = ()
+    """M values with one more learning run (first seed) that adds the re-rendering loss
+    (TrainConfig.rerender_weight = ``rerender_weight``), compared with the normal-only run."""
+    rerender_weight: float = 1.0
+    """Weight of the re-rendering loss (full-scale RMSE) against the normal loss (radians) in
+    those runs."""
+    solver: dict = field(default_factory=dict)
+    """PSConfig overrides of the analytic photometric stereo used for every evaluation (e.g.
+    ``restart_condition``, ``max_shadow_iterations``); empty = the solver's defaults."""
+    eval_pixels_per_scene: int = 0
+    """Masked pixels per test scene that every method is measured on: one fixed random subset per
+    scene, the same for every method and noise level (0 = every masked pixel)."""
+    eval_workers: int = 1
+    """Processes evaluating pattern sets in parallel (each single-threaded; results do not depend
+    on it). 1 evaluates in this process with torch's default threads."""
     train_scenes: tuple[str, ...] = ()
     """Scenes for learning and search; empty = the default synthetic train split."""
     test_scenes: tuple[str, ...] = ()
@@ -125,9 +143,19 @@ class CompareConfig:
     """Default output folder (the command's --out replaces it)."""
 
     def __post_init__(self):
-        counts = list(self.pattern_counts) + list(self.learned_counts or ())
-        if not self.pattern_counts or any(not isinstance(m, int) or m < 1 for m in counts):
-            raise InputError("pattern_counts must list positive integers")
+        counts = list(self.pattern_counts) + list(self.learned_counts or ()) + list(self.rerender_counts)
+        counts += [run.num_patterns for run in self.search] + list(self.learned_at) + list(self.learned_seeds_at)
+        if not self.pattern_counts or any(isinstance(m, bool) or not isinstance(m, int) or m < 1 for m in counts):
+            raise InputError(f"pattern counts M must be positive integers, got {counts}")
+        outside = sorted({m for m in counts if m not in self.pattern_counts})
+        if outside:
+            raise InputError(f"M = {', '.join(map(str, outside))} (learned, re-rendering or [[search]] runs) not in pattern_counts {list(self.pattern_counts)}")
+        if self.eval_pixels_per_scene < 0 or not self.rerender_weight > 0 or self.eval_workers < 1:
+            raise InputError("eval_pixels_per_scene must be >= 0, rerender_weight > 0 and eval_workers >= 1")
+        self.ps_config()
+        for item in self.external:
+            if not Path(item.path).is_file():
+                raise InputError(f"external pattern file {item.name!r} not found: {item.path}")
         if not self.noise_scales or any(s < 0 for s in self.noise_scales):
             raise InputError("noise_scales must list values >= 0")
         if self.default_noise not in self.noise_scales:
@@ -145,12 +173,11 @@ class CompareConfig:
             raise InputError("two [[search]] runs have the same family, M and algorithm")
         if len({item.name for item in self.external}) != len(self.external):
             raise InputError("external pattern names must be unique")
-        for counts_m in list(self.learned_at) + list(self.learned_seeds_at):
-            if not isinstance(counts_m, int):
-                raise InputError(f"learned_at / learned_seeds_at keys must be M values, got {counts_m!r}")
         # Every learning and search config is built now, so a bad value fails before any work.
         for count in self.learned_pattern_counts():
             self.train_config(count, self.seeds_for(count)[0])
+        for count in self.rerender_counts:
+            self.train_config(count, self.seeds_for(count)[0], rerender=True)
         for run in self.search:
             self.search_config(run)
 
@@ -162,13 +189,20 @@ class CompareConfig:
         """Learning seeds at one M."""
         return tuple(self.learned_seeds_at.get(num_patterns, self.learned_seeds))
 
-    def train_config(self, num_patterns: int, seed: int) -> TrainConfig:
-        """The TrainConfig of the learning run at M = ``num_patterns`` with ``seed``."""
+    def train_config(self, num_patterns: int, seed: int, rerender: bool = False) -> TrainConfig:
+        """The TrainConfig of the learning run at M = ``num_patterns`` with ``seed``; ``rerender``
+        sets its re-rendering weight to ``rerender_weight`` (else the overrides' value, default 0)."""
         values = {**self.learned, **self.learned_at.get(num_patterns, {})}
         values.update(num_patterns=num_patterns, seed=seed, rig=self.rig, scenes=list(self.train_scenes),
                       val_scenes=list(self.test_scenes), scene_size=list(self.scene_size), scene_seed=self.scene_seed,
                       noise_scale=self.default_noise)
+        if rerender:
+            values["rerender_weight"] = self.rerender_weight
         return config_from_dict(TrainConfig, values, source=f"learned (M = {num_patterns})")
+
+    def ps_config(self) -> PSConfig:
+        """Solver settings of every evaluation (PSConfig defaults updated by ``solver``)."""
+        return config_from_dict(PSConfig, dict(self.solver), source="solver")
 
     def search_config(self, run: SearchRun) -> SearchConfig:
         """The SearchConfig of one [[search]] run (training scenes, default noise)."""
@@ -231,6 +265,9 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
         raise InputError(f"{source}: [[search]] and [[external]] must be arrays of tables") from None
     if "learned_at" in values:
         values["learned_at"] = _int_keys(values["learned_at"], "learned_at")
+    for key in ("learned", "solver"):
+        if not isinstance(values.get(key, {}), dict):
+            raise InputError(f"{source}: {key} must be a table ([{key}])")
     if "learned_seeds_at" in values:
         values["learned_seeds_at"] = {m: tuple(seeds) for m, seeds in _int_keys(values["learned_seeds_at"], "learned_seeds_at").items()}
     if root is not None:
@@ -239,7 +276,7 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
             if key in values:
                 values[key] = [_resolve(path, root) for path in values[key]]
     config = config_from_dict(CompareConfig, values, source=source)
-    if config.learned_counts is not None:
+    if config.learned_counts is not None:  # an optional tuple is not converted by config_from_dict
         config = dataclasses.replace(config, learned_counts=tuple(config.learned_counts))
     return config
 
@@ -266,6 +303,8 @@ def compare_config_to_dict(config: CompareConfig) -> dict:
     out["learned_at"] = {str(m): dict(v) for m, v in config.learned_at.items()}
     out["learned_seeds_at"] = {str(m): list(v) for m, v in config.learned_seeds_at.items()}
     out["learned_counts"] = None if config.learned_counts is None else list(config.learned_counts)
+    # JSON has no infinity (e.g. restart_condition = inf): such values are written as strings.
+    out["solver"] = {key: str(value) if isinstance(value, float) and not math.isfinite(value) else value for key, value in config.solver.items()}
     return out
 
 
@@ -329,31 +368,39 @@ def _run_record(path: Path) -> dict:
     return json.loads(record.read_text()) if record.exists() else {}
 
 
-def learned_method(config: CompareConfig, num_patterns: int, seed: int, pattern_dir: Path, progress: bool) -> Method:
-    """Learn (or reuse) the patterns of one learning run."""
-    train_config = config.train_config(num_patterns, seed)
-    path = pattern_dir / f"learned_M{num_patterns}_seed{seed}.npz"
+def learned_method(config: CompareConfig, num_patterns: int, seed: int, pattern_dir: Path, progress: bool,
+                   rerender: bool = False, logdir: Path | None = None) -> Method:
+    """Learn (or reuse) the patterns of one learning run (``rerender``: with the re-rendering loss).
+
+    TensorBoard logs of a new run go to ``logdir/<method id>`` when ``logdir`` is given.
+    """
+    train_config = config.train_config(num_patterns, seed, rerender)
+    method_id = f"learned{'_rerender' if rerender else ''}_M{num_patterns}_seed{seed}"
+    path = pattern_dir / f"{method_id}.npz"
     existing = _reusable(path, config_to_dict(train_config), "learned patterns")
     if existing is None:
         start = time.perf_counter()
-        result = train_patterns(train_config, path, progress=progress)
+        result = train_patterns(train_config, path, logdir=None if logdir is None else logdir / method_id, progress=progress)
         seconds = time.perf_counter() - start
         write_json(path.with_name(path.stem + ".run.json"), {"seconds": seconds, "steps": train_config.steps})
         patterns, val_history = result.patterns, result.val_history
     else:
         seconds = _run_record(path).get("seconds")
         patterns, val_history = existing["patterns"], existing["meta"].get("val_mae_history", [])
-    return Method(f"learned_M{num_patterns}_seed{seed}", "learned", "learned", f"learned (seed {seed})", num_patterns, patterns,
-                  str(path), seconds, seed, {"steps": train_config.steps, "init": train_config.init, "val_mae_history": val_history})
+    info = {"steps": train_config.steps, "init": train_config.init, "rerender_weight": train_config.rerender_weight, "val_mae_history": val_history}
+    if rerender:
+        return Method(method_id, "rerender", "learned_rerender", f"learned, normal + re-rendering loss (weight {train_config.rerender_weight:g})",
+                      num_patterns, patterns, str(path), seconds, seed, info)
+    return Method(method_id, "learned", "learned", f"learned (seed {seed})", num_patterns, patterns, str(path), seconds, seed, info)
 
 
-def searched_method(config: CompareConfig, run: SearchRun, pattern_dir: Path, progress: bool) -> Method:
-    """Run (or reuse) one NLopt search."""
+def searched_method(config: CompareConfig, run: SearchRun, pattern_dir: Path, progress: bool, logdir: Path | None = None) -> Method:
+    """Run (or reuse) one NLopt search (TensorBoard logs of a new run under ``logdir/<run name>``)."""
     search_config = config.search_config(run)
     path = pattern_dir / f"{run.name}.npz"
     existing = _reusable(path, config_to_dict(search_config), "searched patterns")
     if existing is None:
-        meta = run_search(search_config, path, progress=progress)
+        meta = run_search(search_config, path, logdir=None if logdir is None else logdir / run.name, progress=progress)
         patterns = load_patterns(path)[0]
     else:
         meta, patterns = existing["meta"], existing["patterns"]
@@ -363,8 +410,11 @@ def searched_method(config: CompareConfig, run: SearchRun, pattern_dir: Path, pr
                   patterns, str(path), meta["seconds"], info=info)
 
 
-def collect_methods(config: CompareConfig, rig, pattern_dir: Path, progress: bool) -> tuple[list[Method], list[dict], dict]:
-    """Every pattern set of the comparison, the skipped ones with the reason, and phase timings."""
+def collect_methods(config: CompareConfig, rig, pattern_dir: Path, progress: bool, logdir: Path | None = None) -> tuple[list[Method], list[dict], dict]:
+    """Every pattern set of the comparison, the skipped ones with the reason, and phase timings.
+
+    Learning and searches run here (TensorBoard logs under ``logdir`` when given).
+    """
     methods: list[Method] = []
     skipped: list[dict] = []
     timings = {"learning_seconds": 0.0, "search_seconds": 0.0}
@@ -381,14 +431,18 @@ def collect_methods(config: CompareConfig, rig, pattern_dir: Path, progress: boo
     for count in config.learned_pattern_counts():
         for seed in config.seeds_for(count):
             start = time.perf_counter()
-            methods.append(learned_method(config, count, seed, pattern_dir, progress))
+            methods.append(learned_method(config, count, seed, pattern_dir, progress, logdir=logdir))
             timings["learning_seconds"] += time.perf_counter() - start
+    for count in config.rerender_counts:
+        start = time.perf_counter()
+        methods.append(learned_method(config, count, config.seeds_for(count)[0], pattern_dir, progress, rerender=True, logdir=logdir))
+        timings["learning_seconds"] += time.perf_counter() - start
     for run in config.search:
         if run.num_patterns not in config.pattern_counts:
             skipped.append({"method": run.name, "M": run.num_patterns, "reason": "M is not in pattern_counts"})
             continue
         start = time.perf_counter()
-        methods.append(searched_method(config, run, pattern_dir, progress))
+        methods.append(searched_method(config, run, pattern_dir, progress, logdir))
         timings["search_seconds"] += time.perf_counter() - start
     for item in config.external:
         patterns, meta = load_patterns(item.path)
@@ -430,14 +484,85 @@ def summarise(scene_metrics: list[dict], num_patterns: int, exposure_ms: float) 
     return summary
 
 
-def evaluate_methods(methods: list[Method], scenes, noise_scales, eval_seed: int, exposure_ms: float, progress: bool) -> None:
-    """Fill every method's ``evaluations`` with one summary per noise level (test scenes)."""
-    jobs = [(method, noise) for method in methods for noise in noise_scales]
-    for method, noise in tqdm(jobs, desc="evaluating", unit="set", disable=not progress):
-        settings = EvalSettings(method="woodham" if method.kind == "reference" else "ps", noise_scale=noise, seed=eval_seed)
-        patterns = method.patterns if isinstance(method.patterns, str) else torch.as_tensor(np.asarray(method.patterns, dtype=np.float32))
-        scene_metrics = [evaluate_scene(pixels, patterns, settings, index).metrics for index, pixels in enumerate(scenes)]
-        method.evaluations.append({"noise_scale": float(noise), **summarise(scene_metrics, method.num_patterns, exposure_ms)})
+def evaluation_columns(scenes, pixels_per_scene: int, seed: int) -> list:
+    """Per scene: sorted (P,) indices of a fixed random subset of ``pixels_per_scene`` masked
+    pixels (seeded by ``seed`` and the scene index), or None to measure every masked pixel."""
+    columns = []
+    for index, pixels in enumerate(scenes):
+        if pixels_per_scene and pixels.num_pixels > pixels_per_scene:
+            chooser = torch.Generator().manual_seed(seed * 1000 + index + 500)
+            columns.append(torch.randperm(pixels.num_pixels, generator=chooser)[:pixels_per_scene].sort().values)
+        else:
+            columns.append(None)
+    return columns
+
+
+def _pattern_key(patterns) -> str:
+    if isinstance(patterns, str):
+        return patterns
+    values = np.ascontiguousarray(patterns, dtype=np.float32)
+    return f"{values.shape}:{hashlib.sha1(values.tobytes()).hexdigest()}"
+
+
+_WORKER_STATE: dict = {}
+"""Scenes, pixel subsets and solver settings of the evaluation workers (inherited by fork)."""
+
+
+def _init_worker() -> None:
+    # Forked children must not enter the parent's OpenMP pool (as torch's DataLoader workers).
+    torch.set_num_threads(1)
+
+
+def _evaluate_job(patterns, reference: bool, noise: float) -> list[dict]:
+    """Per-scene metrics of one pattern set at one noise level (runs in a worker or in-process)."""
+    state = _WORKER_STATE
+    settings = EvalSettings(method="woodham" if reference else "ps", noise_scale=noise, seed=state["seed"], ps=state["ps"])
+    if not isinstance(patterns, str):
+        patterns = torch.as_tensor(np.asarray(patterns, dtype=np.float32))
+    return [evaluate_scene(pixels, patterns, settings, index, subset).metrics
+            for index, (pixels, subset) in enumerate(zip(state["scenes"], state["columns"]))]
+
+
+def evaluate_methods(methods: list[Method], scenes, config: CompareConfig, exposure_ms: float, progress: bool) -> None:
+    """Fill every method's ``evaluations`` with one summary per noise level (test scenes).
+
+    Scenes are prepared once by the caller; every method is measured on the same pixels
+    (``config.eval_pixels_per_scene``) with the same noise draws, and a pattern set that occurs
+    twice (e.g. an external file equal to a heuristic family) is evaluated once. With
+    ``config.eval_workers`` > 1 the (pattern set, noise level) jobs run in forked processes.
+    """
+    _WORKER_STATE.update(scenes=scenes, columns=evaluation_columns(scenes, config.eval_pixels_per_scene, config.eval_seed),
+                         ps=config.ps_config(), seed=config.eval_seed)
+    unique: dict[str, Method] = {}
+    for method in methods:
+        unique.setdefault(_pattern_key(method.patterns), method)
+    jobs = [(key, method, float(noise)) for key, method in unique.items() for noise in config.noise_scales]
+    metrics: dict = {}
+    bar = tqdm(total=len(jobs), desc="evaluating", unit="set", disable=not progress)
+    try:
+        if config.eval_workers > 1 and len(jobs) > 1:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            with ProcessPoolExecutor(config.eval_workers, mp_context=multiprocessing.get_context("fork"), initializer=_init_worker) as pool:
+                futures = {pool.submit(_evaluate_job, method.patterns, method.kind == "reference", noise): (key, noise)
+                           for key, method, noise in jobs}
+                for future in as_completed(futures):
+                    metrics[futures[future]] = future.result()
+                    bar.update(1)
+        else:
+            for key, method, noise in jobs:
+                metrics[(key, noise)] = _evaluate_job(method.patterns, method.kind == "reference", noise)
+                bar.update(1)
+    finally:
+        bar.close()
+        _WORKER_STATE.clear()
+    for method in methods:
+        key = _pattern_key(method.patterns)
+        if unique[key] is not method:
+            method.info["same_patterns_as"] = unique[key].id
+        method.evaluations = [{"noise_scale": float(noise), **summarise(metrics[(key, float(noise))], method.num_patterns, exposure_ms)}
+                              for noise in config.noise_scales]
 
 
 def method_record(method: Method, out_dir: Path) -> dict:
@@ -476,9 +601,9 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     resolved = compare_config_to_dict(config)
     write_json(out_dir / "config.json", resolved)
     test_scenes = prepare_scenes(config.test_scenes, "test", rig, config.scene_size, config.scene_seed)
-    methods, skipped, timings = collect_methods(config, rig, out_dir / "patterns", progress)
+    methods, skipped, timings = collect_methods(config, rig, out_dir / "patterns", progress, logdir=out_dir / "tensorboard")
     start = time.perf_counter()
-    evaluate_methods(methods, test_scenes, config.noise_scales, config.eval_seed, exposure_ms, progress)
+    evaluate_methods(methods, test_scenes, config, exposure_ms, progress)
     timings["evaluation_seconds"] = time.perf_counter() - start
     results = {
         "config": resolved,

@@ -55,17 +55,20 @@ class SceneEvaluation:
     exposure: float
 
 
-def olat_captures(pixels: ScenePixels, settings: EvalSettings, generator: torch.Generator):
-    """Captures of the full OLAT stack: (K, N, 3) and the diagonal effective emission (K, K, 3).
+def olat_captures(pixels: ScenePixels, settings: EvalSettings, generator: torch.Generator, columns: torch.Tensor | None = None):
+    """Captures of the full OLAT stack: (K, N or P, 3) and the diagonal effective emission (K, K, 3).
 
     Each OLAT image is exposed as the operator would for the whole stack (auto: 99.9th percentile of
-    all of them at 0.9), with the backlight removed as in the definition of O (DESIGN section 2).
+    all of them over every masked pixel at 0.9), with the backlight removed as in the definition of
+    O (DESIGN section 2). ``columns`` (P,) restricts the captures to a pixel subset.
     """
     radiance = pixels.transport.matrix.permute(1, 2, 0)  # (K, N, 3)
     if settings.exposure == "auto":
         exposure = auto_exposure(radiance)
     else:
         exposure = float(settings.exposure)
+    if columns is not None:
+        radiance = radiance[:, columns]
     rig = pixels.rig
     noisy = settings.noise_scale > 0
     captures = sensor(exposure * radiance, rig.noise.scaled(settings.noise_scale) if noisy else None, rig.bit_depth if noisy else None, generator)
@@ -73,7 +76,7 @@ def olat_captures(pixels: ScenePixels, settings: EvalSettings, generator: torch.
     return captures, exposure * eye[:, :, None].expand(-1, -1, 3), exposure
 
 
-def evaluate_scene(pixels: ScenePixels, patterns, settings: EvalSettings, scene_index: int = 0) -> SceneEvaluation:
+def evaluate_scene(pixels: ScenePixels, patterns, settings: EvalSettings, scene_index: int = 0, columns: torch.Tensor | None = None) -> SceneEvaluation:
     """Simulate, reconstruct and measure one scene.
 
     Args:
@@ -81,9 +84,12 @@ def evaluate_scene(pixels: ScenePixels, patterns, settings: EvalSettings, scene_
         patterns: (M, R, C, 3) tensor of set values, or the string "olat" for the full OLAT stack.
         settings: method, noise, exposure, seed, solver.
         scene_index: position of the scene in its set (chooses its noise seed).
+        columns: optional (P,) indices of the masked pixels to reconstruct and measure (None = all);
+            auto exposure still looks at every masked pixel.
 
     Returns:
-        SceneEvaluation with metrics {mae, median, under_5, ..., invalid_fraction, seconds, exposure}.
+        SceneEvaluation with metrics {mae, median, under_5, ..., invalid_fraction, seconds, exposure}
+        and the (N or P, ...) reconstruction.
     """
     if pixels.normal is None:
         raise InputError(f"scene {pixels.name} has no ground-truth normals to evaluate against")
@@ -91,24 +97,26 @@ def evaluate_scene(pixels: ScenePixels, patterns, settings: EvalSettings, scene_
     start = time.perf_counter()
     with torch.no_grad():
         lights, falloff = pixels.lights(), pixels.rig.falloff
+        points = pixels.points if columns is None else pixels.points[columns]
+        truth = pixels.normal if columns is None else pixels.normal[columns]
         if isinstance(patterns, str):
             if patterns != "olat":
                 raise InputError(f"patterns must be a pattern array or 'olat', got {patterns!r}")
-            captures, emission, exposure = olat_captures(pixels, settings, generator)
+            captures, emission, exposure = olat_captures(pixels, settings, generator, columns)
             if settings.method == "woodham":
-                result = solve_woodham_olat(captures, pixels.points, lights, falloff, exposure)
+                result = solve_woodham_olat(captures, points, lights, falloff, exposure)
             else:
-                result = solve_ps(captures, emission, pixels.points, lights, falloff, settings.ps)
+                result = solve_ps(captures, emission, points, lights, falloff, settings.ps)
         else:
-            capture = capture_scene(pixels, patterns, settings.noise_scale, settings.exposure, generator)
+            capture = capture_scene(pixels, patterns, settings.noise_scale, settings.exposure, generator, columns)
             captures, emission, exposure = capture.captures, capture.emission, capture.exposure
             if settings.method == "woodham":
-                result = solve_woodham(captures, emission, pixels.points, lights, falloff)
+                result = solve_woodham(captures, emission, points, lights, falloff)
             else:
-                result = solve_ps(captures, emission, pixels.points, lights, falloff, settings.ps)
+                result = solve_ps(captures, emission, points, lights, falloff, settings.ps)
     seconds = time.perf_counter() - start
-    everywhere = torch.ones(pixels.num_pixels, dtype=torch.bool)
-    metrics = {"name": pixels.name, **normal_metrics(result.normal, pixels.normal, everywhere)}
+    everywhere = torch.ones(truth.shape[0], dtype=torch.bool)
+    metrics = {"name": pixels.name, **normal_metrics(result.normal, truth, everywhere)}
     metrics["invalid_fraction"] = float((~result.valid).float().mean())
     metrics["seconds"] = seconds
     metrics["exposure"] = exposure

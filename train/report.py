@@ -10,6 +10,7 @@ import math
 from collections import defaultdict
 from pathlib import Path
 
+import matplotlib.ticker
 import numpy as np
 
 from capture_sim.atomic import write_text
@@ -26,9 +27,10 @@ CHARTS = {
 """Chart name -> file name in the output folder."""
 
 _ROW_METRICS = ("mae", "median", "under_10", "invalid_fraction", "exposure", "capture_seconds", "compute_seconds")
-_KIND_ORDER = {"learned": 0, "search": 1, "external": 2, "heuristic": 3, "reference": 4}
+_KIND_ORDER = {"learned": 0, "rerender": 1, "search": 2, "external": 3, "heuristic": 4, "reference": 5}
 _KIND_STYLE = {
     "learned": dict(color="tab:red", marker="o", linewidth=2.5),
+    "rerender": dict(color="darkorange", marker="P", linewidth=2.0, linestyle="--"),
     "search": dict(color="tab:purple", marker="D", linewidth=1.5),
     "external": dict(color="tab:brown", marker="s", linewidth=1.5),
     "heuristic": dict(marker=".", linewidth=1.0, alpha=0.8),
@@ -77,10 +79,12 @@ def summary_tables(results: dict) -> dict:
     Returns:
         dict with ``rows`` (``aggregate_rows`` at the default noise), ``learned_vs_heuristic``
         (per M and noise: learned MAE, best heuristic family and MAE at default parameters, the
-        ratio learned / best heuristic, and the same against the best of heuristics and searches)
-        and ``seed_spread`` (per M and noise with several seeds: mean, std, min, max MAE).
+        ratio learned / best heuristic, and the same against the best of heuristics and searches),
+        ``seed_spread`` (per M and noise with several seeds: mean, std, min, max MAE) and
+        ``rerender`` (per M and noise: the normal-only learned MAE of the same seed against the
+        normal + re-rendering learned MAE, and their ratio).
     """
-    comparisons, spread = [], []
+    comparisons, spread, rerender = [], [], []
     for noise in results["noise_scales"]:
         rows = aggregate_rows(results, noise)
         for count in results["pattern_counts"]:
@@ -102,6 +106,16 @@ def summary_tables(results: dict) -> dict:
             evaluation = _evaluation(method, noise)
             if method["kind"] == "learned" and evaluation is not None:
                 by_m[method["M"]].append((method["seed"], evaluation["mae"]))
+        learned_by_key = {(method["M"], method["seed"]): method for method in results["methods"] if method["kind"] == "learned"}
+        for method in results["methods"]:
+            normal_only = learned_by_key.get((method["M"], method["seed"]))
+            if method["kind"] != "rerender" or normal_only is None:
+                continue
+            with_rerender, without = _evaluation(method, noise), _evaluation(normal_only, noise)
+            if with_rerender is not None and without is not None:
+                rerender.append({"M": method["M"], "noise_scale": noise, "seed": method["seed"], "weight": method["info"].get("rerender_weight"),
+                                 "normal_only_mae": without["mae"], "rerender_mae": with_rerender["mae"],
+                                 "ratio": with_rerender["mae"] / max(without["mae"], 1e-12)})
         for count, values in sorted(by_m.items()):
             if len(values) > 1:
                 maes = np.array([mae for _, mae in values])
@@ -109,7 +123,8 @@ def summary_tables(results: dict) -> dict:
                                "mean": float(maes.mean()), "std": float(maes.std()), "min": float(maes.min()), "max": float(maes.max())})
     comparisons.sort(key=lambda c: (c["M"], c["noise_scale"]))
     spread.sort(key=lambda s: (s["M"], s["noise_scale"]))
-    return {"rows": aggregate_rows(results, results["default_noise"]), "learned_vs_heuristic": comparisons, "seed_spread": spread}
+    rerender.sort(key=lambda r: (r["M"], r["noise_scale"]))
+    return {"rows": aggregate_rows(results, results["default_noise"]), "learned_vs_heuristic": comparisons, "seed_spread": spread, "rerender": rerender}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -176,11 +191,15 @@ def chart_mae_vs_cost(rows: list[dict], key: str, xlabel: str, title: str, capti
         ys = [row["mae"] for row in values]
         style = _style(kind, series)
         style.pop("linewidth", None)
+        style.pop("linestyle", None)
         ax.plot(xs, ys, linestyle="none", markersize=7 if kind != "heuristic" else 9, label=label, **style)
         if kind != "heuristic":  # heuristics share their M's positions: labels there would pile up
             for x, y, row in zip(xs, ys, values):
                 ax.annotate(f"M={row['M']}", (x, y), textcoords="offset points", xytext=(4, 3), fontsize=6)
     ax.set_xscale("log")
+    # Plain numbers (0.2, 0.5, 1, 2 s) instead of powers of ten on the log axis.
+    ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}"))
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}" if str(f"{value:g}")[0] in "25" else ""))
     ax.set_xlabel(xlabel)
     ax.set_ylabel("mean angular error (deg)")
     ax.set_title(title)
@@ -194,7 +213,7 @@ def chart_mae_vs_cost(rows: list[dict], key: str, xlabel: str, title: str, capti
 def chart_mae_vs_noise(results: dict, caption: str):
     """MAE (deg) against noise level, one panel per M, one line per method."""
     counts = results["pattern_counts"]
-    fig, axes = plt.subplots(1, len(counts), figsize=(4.2 * len(counts), 4.4), squeeze=False, sharey=True)
+    fig, axes = plt.subplots(1, len(counts), figsize=(4.2 * len(counts), 6.0), squeeze=False, sharey=True)
     per_noise = {noise: aggregate_rows(results, noise) for noise in results["noise_scales"]}
     noises = sorted(per_noise)
     for ax, count in zip(axes[0], counts):
@@ -220,9 +239,10 @@ def chart_mae_vs_noise(results: dict, caption: str):
         for handle, label in zip(*ax.get_legend_handles_labels()):
             legend.setdefault(label, handle)
     fig.suptitle("Normal error against sensor noise (where methods fail)")
-    fig.tight_layout(rect=(0, 0.12, 1, 1))
-    fig.legend(list(legend.values()), list(legend), fontsize=7, loc="lower center", ncol=min(5, max(1, len(legend))), bbox_to_anchor=(0.5, 0.03))
-    fig.text(0.5, 0.0, caption, ha="center", va="bottom", fontsize=8, wrap=True)
+    # Axes in the top 70 %, the legend below them, the caption at the bottom: nothing overlaps.
+    fig.tight_layout(rect=(0, 0.3, 1, 0.97))
+    fig.legend(list(legend.values()), list(legend), fontsize=7, loc="upper center", ncol=min(4, max(1, len(legend))), bbox_to_anchor=(0.5, 0.25))
+    fig.text(0.5, 0.005, caption, ha="center", va="bottom", fontsize=8, wrap=True)
     return fig
 
 
@@ -266,7 +286,7 @@ def pattern_entries(results: dict, rows: list[dict], pattern_sets: dict) -> list
             if method_id in pattern_sets:
                 entries.append((f"best heuristic, M = {count}: {best['series']} ({best['mae']:.1f} deg)", pattern_sets[method_id]))
         for method in results["methods"]:
-            if method["kind"] in ("search", "external") and method["M"] == count and method["id"] in pattern_sets:
+            if method["kind"] in ("rerender", "search", "external") and method["M"] == count and method["id"] in pattern_sets:
                 entries.append((f"{method['kind']}: {method['label']}, M = {count}", pattern_sets[method["id"]]))
     return entries
 
@@ -290,6 +310,16 @@ def _table(header: list[str], lines: list[list[str]]) -> str:
     return "\n".join(out)
 
 
+def _solver_text(results: dict) -> str:
+    solver = results.get("config", {}).get("solver") or {}
+    return f" (solver settings changed from the defaults: {', '.join(f'{k} = {v}' for k, v in solver.items())})" if solver else ""
+
+
+def _pixels_text(results: dict) -> str:
+    count = results.get("config", {}).get("eval_pixels_per_scene", 0)
+    return f"a fixed random subset of at most {count} masked pixels per scene (the same for every method)" if count else "every masked pixel"
+
+
 def _measurement_caption(results: dict) -> str:
     default = results["default_noise"]
     return (
@@ -297,8 +327,9 @@ def _measurement_caption(results: dict) -> str:
         f"{', '.join(results['test_scenes'])}), rig {results['rig']} ({results['grid'][0]} x {results['grid'][1]} superpixels). "
         "Captures are simulated from the OLAT stacks (display gamma and backlight, Poisson-Gaussian noise at the given scale "
         "times the rig's noise variances, clipping, quantisation) with auto exposure per scene, then reconstructed with the "
-        "analytic photometric stereo (the OLAT reference: Woodham least squares on all K images). MAE and median are angular "
-        "normal errors in degrees over the mask, averaged over scenes (each scene weighs the same). Capture time = M x "
+        f"analytic photometric stereo{_solver_text(results)} (the OLAT reference: Woodham least squares on all K images). "
+        f"MAE and median are angular normal errors in degrees over {_pixels_text(results)}, averaged over scenes (each scene "
+        "weighs the same). Capture time = M x "
         f"{results['exposure_ms']:g} ms ({results['exposure_ms_source']}). Compute time = wall seconds per scene of simulation plus "
         "reconstruction on this machine's CPU. Exposure = mean auto-exposure gain. Cost = wall seconds spent learning "
         f"(training scenes only) or searching. Learning and searches used noise scale {default:g}."
@@ -355,8 +386,9 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
     if reference is not None:
         lines += [f"Reference: {reference['label']}: MAE {reference['mae']:.2f} deg, median {reference['median']:.2f} deg, "
                   f"capture {reference['capture_seconds']:.1f} s, compute {reference['compute_seconds']:.2f} s per scene.", ""]
+    capture = ", ".join(f"M = {m}: {m * results['exposure_ms'] / 1000:.2f} s" for m in counts)
     lines += ["Median angular error (deg):", "", pivot("median", 2), "",
-              "Capture time (s, M x exposure time):", "", pivot("capture_seconds", 2), "",
+              f"Capture time (M x {results['exposure_ms']:g} ms exposure, the same for every method at one M): {capture}.", "",
               "Compute time (s per scene, simulation + reconstruction):", "", pivot("compute_seconds", 3), ""]
     for count in counts:
         at_m = [row for row in rows if row["M"] == count]
@@ -384,12 +416,29 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
         body = [[str(c["M"]), f"{c['noise_scale']:g}", _fmt(c["learned_mae"]), f"{c['best_heuristic']} ({_fmt(c['best_heuristic_mae'])})",
                  _fmt(c["ratio"], 3), f"{c['best_tuned']} ({_fmt(c['best_tuned_mae'])})", _fmt(c["ratio_tuned"], 3)] for c in comparisons]
         lines += [_table(["M", "noise", "learned MAE", "best heuristic (MAE)", "ratio", "best tuned (MAE)", "ratio (tuned)"], body), ""]
+        for count in counts:
+            at_m = sorted((c for c in comparisons if c["M"] == count), key=lambda c: c["noise_scale"])
+            if len(at_m) > 1:
+                trend = " -> ".join(f"{c['ratio']:.3f} (noise {c['noise_scale']:g})" for c in at_m)
+                change = at_m[-1]["ratio"] - at_m[0]["ratio"]
+                verdict = "grows" if change < -0.01 else "shrinks" if change > 0.01 else "stays about the same"
+                lines.append(f"- M = {count}: ratio {trend}; the learned advantage {verdict} as the noise rises.")
+        lines.append("")
 
     if summary["seed_spread"]:
         lines += ["## Seed spread of learned patterns", "", "Test MAE (deg) of patterns learned with different seeds (same config otherwise):", ""]
         body = [[str(s["M"]), f"{s['noise_scale']:g}", ", ".join(map(str, s["seeds"])), _fmt(s["mean"]), _fmt(s["std"]), _fmt(s["min"]), _fmt(s["max"])]
                 for s in summary["seed_spread"]]
         lines += [_table(["M", "noise", "seeds", "mean", "std", "min", "max"], body), ""]
+
+    if summary.get("rerender"):
+        lines += ["## Learning through the renderer: normal-only against normal + re-rendering loss", "",
+                  "Test MAE (deg) of patterns learned with the normal loss only and with the re-rendering loss added "
+                  "(the analytic estimate rendered under the patterns against the simulated captures; same seed and steps). "
+                  "Ratio < 1: the re-rendering loss helps.", ""]
+        body = [[str(r["M"]), f"{r['noise_scale']:g}", str(r["seed"]), _fmt(r["weight"], 3) if r["weight"] is not None else "-",
+                 _fmt(r["normal_only_mae"]), _fmt(r["rerender_mae"]), _fmt(r["ratio"], 3)] for r in summary["rerender"]]
+        lines += [_table(["M", "noise", "seed", "weight", "normal only", "normal + re-rendering", "ratio"], body), ""]
 
     searches = [m for m in results["methods"] if m["kind"] == "search"]
     if searches:
