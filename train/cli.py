@@ -128,7 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
     invrender.add_argument("--noise", choices=NOISE_CHOICES, default="default")
     invrender.add_argument("--seed", type=int, default=0)
     invrender.add_argument("--rig", default=DEFAULT_RIG)
-    invrender.add_argument("--threads", type=int, default=1, help="torch threads (1: robust on a busy machine)")
+    invrender.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default, one per core; 1 is faster on a busy machine)")
     invrender.add_argument("--json", type=Path, default=None)
     invrender.add_argument("--out", type=Path, default=None)
     invrender.set_defaults(handler=_invrender)

@@ -78,11 +78,12 @@ class InvRenderConfig:
     """Pixels per Adam step."""
     tv_weight: float = 1e-3
     """Weight of the normals' total variation (see ``FitConfig.tv_weight``)."""
-    threads: int = 1
-    """torch intra-op threads while the command runs (restored afterwards). One by default: a fit
-    step is a few hundred small element-wise passes, and when the second core is busy every
-    parallel pass waits for a descheduled thread (measured on the shared 2-core machine, load
-    about 6: 291 s wall with two threads against 42 s with one for the same 128 x 153 OLAT fit)."""
+    threads: int = 0
+    """torch intra-op threads while the command runs (restored afterwards); 0 keeps torch's default
+    (one per core). On a quiet 2-core machine two threads are faster (the noise-free 128 x 153 OLAT
+    fit: 24 s wall with two, 40 s with one); on a busy one pass 1: a fit step is a few hundred small
+    element-wise passes, and when the other core is taken every parallel pass waits for a
+    descheduled thread (load about 6: 291 s wall with two threads against 42 s with one)."""
     selection: SelectionConfig = field(default_factory=SelectionConfig)
     """Model-selection sweep settings (used when ``basis = 'auto'``)."""
 
@@ -111,8 +112,8 @@ class InvRenderConfig:
             raise InputError("batch_pixels must be positive and tv_weight non-negative")
         if self.seed < 0:
             raise InputError(f"--seed must be non-negative, got {self.seed}")
-        if self.threads < 1:
-            raise InputError(f"--threads must be at least 1, got {self.threads}")
+        if self.threads < 0:
+            raise InputError(f"--threads must be 0 (torch's default) or positive, got {self.threads}")
         parse_exposure(str(self.exposure))
 
     def to_dict(self) -> dict:
@@ -222,7 +223,7 @@ def run_invrender(config: InvRenderConfig) -> dict:
     """
     config.validate()
     previous_threads = torch.get_num_threads()
-    torch.set_num_threads(config.threads)
+    torch.set_num_threads(config.threads or previous_threads)
     try:
         return _run(config)
     finally:
@@ -540,7 +541,7 @@ PUBLISHED_M4_PATTERNS = Path(__file__).resolve().parent.parent / "patterns" / "d
 
 
 def bench_invrender(repeats: int = 3, iterations: int = 50, family: str = "mono_gradient", num_patterns: int = 4,
-                    num_basis: int = 3, seed: int = 0, threads: int = 1, acceptance: bool = True) -> dict:
+                    num_basis: int = 3, seed: int = 0, threads: int = 0, acceptance: bool = True) -> dict:
     """Speed of the inverse renderer on a full 512 x 612 object, and its acceptance runs at 128 x 153.
 
     Speed (``displex bench invrender``). The object is the svbrdf sphere of ``capture_sim`` at full
@@ -564,14 +565,16 @@ def bench_invrender(repeats: int = 3, iterations: int = 50, family: str = "mono_
     seconds of each.
 
     Args:
-        threads: torch intra-op threads for the whole benchmark (restored afterwards).
+        threads: torch intra-op threads for the whole benchmark (restored afterwards); 0 keeps
+            torch's default.
 
     Returns:
         ``{"full_1000_iter_s", "per_iter_s", "pixels", "peak_rss_mb", ...}`` with the parts above.
     """
-    if repeats < 1 or iterations < 1 or threads < 1:
-        raise InputError("repeats, iterations and threads must be at least 1")
+    if repeats < 1 or iterations < 1 or threads < 0:
+        raise InputError("repeats and iterations must be at least 1, threads at least 0")
     previous_threads = torch.get_num_threads()
+    threads = threads or previous_threads
     torch.set_num_threads(threads)
     try:
         speed = _bench_speed(repeats, iterations, family, num_patterns, num_basis, seed)
