@@ -76,12 +76,6 @@ def _symmetric_solve(system: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
     return _symmetric_apply(adjugate, rhs) / safe
 
 
-def _inverse_apply(system: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
-    """Solve (N, 3, 3) symmetric systems for (N, 3) right-hand sides by the adjugate; (N, 3)."""
-    unique = system[:, _ROWS, _COLS].T  # (6, N)
-    return _symmetric_solve(unique, rhs.T).T
-
-
 def _alternate(normal, albedo, moments, rhs_moments, damping, steps):
     """``steps`` albedo/normal alternations.
 

@@ -5,7 +5,7 @@ from capture_sim.display import display_emission
 from capture_sim.rig import load_rig
 from capture_sim.synth import lambertian_sphere
 from reconstruct.metrics import angular_error_deg
-from reconstruct.unrolled_ps import UnrolledPSConfig, _inverse_apply, light_reach, solve_ps_unrolled
+from reconstruct.unrolled_ps import _COLS, _ROWS, UnrolledPSConfig, _symmetric_solve, light_reach, solve_ps_unrolled
 from train.scene_pixels import scene_pixels
 
 
@@ -24,7 +24,8 @@ def test_adjugate_solve_matches_linalg():
     factor = torch.randn(50, 3, 3, dtype=torch.float64, generator=generator)
     system = factor @ factor.transpose(1, 2) + 0.1 * torch.eye(3, dtype=torch.float64)
     rhs = torch.randn(50, 3, dtype=torch.float64, generator=generator)
-    torch.testing.assert_close(_inverse_apply(system, rhs), torch.linalg.solve(system, rhs))
+    unique = system[:, _ROWS, _COLS].T  # (6, N): the solver's storage of symmetric systems
+    torch.testing.assert_close(_symmetric_solve(unique, rhs.T).T, torch.linalg.solve(system, rhs))
 
 
 def test_noise_free_sphere_recovers_normals():
