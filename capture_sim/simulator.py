@@ -58,8 +58,9 @@ class LightTransport:
     def num_pixels(self) -> int:
         return self.matrix.shape[2]
 
-    def subset(self, columns: torch.Tensor) -> "LightTransport":
-        """The transport of the pixels at positions ``columns`` (indices into 0..N-1)."""
+    def subset(self, columns: torch.Tensor | slice) -> "LightTransport":
+        """The transport of the pixels at positions ``columns`` (indices into 0..N-1, a copy; or a
+        slice, a view)."""
         return LightTransport(self.matrix[:, :, columns], self.pixel_index[columns], self.height, self.width)
 
     def to_image(self, values: torch.Tensor, fill: float = 0.0) -> torch.Tensor:

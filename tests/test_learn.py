@@ -8,6 +8,7 @@ from capture_sim.errors import InputError
 from capture_sim.rig import load_rig
 from capture_sim.scene import save_scene
 from capture_sim.synth import synthesize_scene
+from patterns.families import make_patterns
 from train.learn import TrainConfig, normal_loss, train_patterns
 
 
@@ -109,6 +110,13 @@ def test_shuffled_windows_are_views_of_every_pixel(scene_dirs):
         part = sampler.draw(generator)
         window = shuffled.transport.subset(part).matrix
         assert window.shape[2] == 50 and window.untyped_storage().data_ptr() == shuffled.transport.matrix.untyped_storage().data_ptr()
+    # Auto exposure over the shuffled copy's distinct pixels equals the one over the source scene.
+    from train.capture import scene_exposure
+
+    patterns = make_patterns("mono_gradient", 4).float()
+    every = sampler.every_pixel()
+    assert every.num_pixels == pixels.num_pixels and every.points.shape == pixels.points.shape
+    assert scene_exposure(every, patterns) == pytest.approx(scene_exposure(pixels, patterns), rel=1e-6)
     with pytest.raises(InputError):
         shuffle_pixels(pixels, 0, generator)
 

@@ -218,6 +218,8 @@ def bench_train(num_patterns: int = 4, sampled_pixels: int = 100_000, repeats: i
     prepare_start = time.perf_counter()
     sampler = shuffle_pixels(pixels, sampled_pixels, torch.Generator().manual_seed(seed))
     prepare_s = time.perf_counter() - prepare_start
+    del pixels  # learning keeps only the shuffled copy
+    every_pixel = sampler.every_pixel()
     logits = patterns_to_logits(make_patterns("tri_random", num_patterns, seed=seed)).requires_grad_()
     config = TrainConfig(num_patterns=num_patterns)
     generator = torch.Generator().manual_seed(seed)
@@ -227,7 +229,7 @@ def bench_train(num_patterns: int = 4, sampled_pixels: int = 100_000, repeats: i
         logits.grad = None
         part = sampler.draw(generator)
         patterns = logits_to_patterns(logits)
-        capture = capture_scene(scene, patterns, 1.0, scene_exposure(pixels, patterns), generator, part)
+        capture = capture_scene(scene, patterns, 1.0, scene_exposure(every_pixel, patterns), generator, part)
         normal, _ = solve_ps_unrolled(capture.captures, capture.emission, scene.points[part], scene.lights(), scene.rig.falloff, reach=sampler.reach[:, part])
         normal_loss(normal, scene.normal[part], config.loss).backward()
 

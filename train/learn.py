@@ -149,7 +149,7 @@ def training_loss(logits: torch.Tensor, scenes: list[ShuffledPixels], config: Tr
     losses = []
     for sampler in scenes:
         part = sampler.draw(generator)
-        exposure = scene_exposure(sampler.source, patterns)
+        exposure = scene_exposure(sampler.every_pixel(), patterns)
         pixels = sampler.scene
         capture = capture_scene(pixels, patterns, config.noise_scale, exposure, generator, part)
         if config.solver == "full":

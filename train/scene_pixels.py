@@ -71,22 +71,24 @@ class ShuffledPixels:
     random subset would.
 
     Attributes:
-        source: the scene in its original order (auto exposure uses all of its pixels).
-        scene: the same scene with transport, points and normals in shuffled, wrapped order
-            (num_pixels + window - 1 columns).
+        scene: the scene with transport, points and normals in shuffled, wrapped order
+            (num_pixels + window - 1 columns; the source scene is not kept).
         reach: (K, num_pixels + window - 1) ``light_reach`` of the shuffled points (geometry only,
             computed once instead of every step).
         window: pixels per draw, min(requested, number of pixels).
+        num_pixels: N, the scene's distinct pixels (the first N columns of ``scene``).
     """
 
-    source: ScenePixels
     scene: ScenePixels
     reach: torch.Tensor
     window: int
+    num_pixels: int
 
-    @property
-    def num_pixels(self) -> int:
-        return self.source.num_pixels
+    def every_pixel(self) -> ScenePixels:
+        """The scene's N pixels once each, in shuffled order, as views (auto exposure reads them all)."""
+        part, scene = slice(0, self.num_pixels), self.scene
+        normal = None if scene.normal is None else scene.normal[part]
+        return ScenePixels(scene.name, scene.rig, scene.transport.subset(part), scene.points[part], normal, scene.mask)
 
     def draw(self, generator: torch.Generator) -> slice:
         """A random window of ``window`` pixels, as a slice into ``scene`` and ``reach``."""
@@ -112,4 +114,4 @@ def shuffle_pixels(pixels: ScenePixels, window: int, generator: torch.Generator)
     normal = None if pixels.normal is None else pixels.normal[order]
     scene = ScenePixels(pixels.name, pixels.rig, transport, points, normal, pixels.mask)
     reach = light_reach(points, pixels.lights(), pixels.rig.falloff)
-    return ShuffledPixels(pixels, scene, reach, window)
+    return ShuffledPixels(scene, reach, window, pixels.num_pixels)
