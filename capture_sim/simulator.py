@@ -127,7 +127,8 @@ def auto_exposure(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERC
     Returns:
         e > 0 as a Python float (1.0 when the scene is completely dark, so nothing divides by zero).
     """
-    values = radiance.detach().reshape(-1).double()
+    # The rank statistic is exact in the input's own dtype (converting to float64 would only copy).
+    values = radiance.detach().reshape(-1)
     rank = min(values.numel(), max(1, int(np.ceil(percentile / 100.0 * values.numel()))))
     level = float(torch.kthvalue(values, rank).values)
     return target / level if level > 1e-12 else 1.0

@@ -148,7 +148,9 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
     points_t, lights = points.to(dtype).T.contiguous(), lights.to(dtype)  # (3, N), (K, 3)
     if reach is None:
         reach = light_reach(points.to(dtype), lights, falloff)
-    check_array("reach", reach, (lights.shape[0], num_pixels))
+    # Shape only: reach is geometry from ``light_reach`` (finite by construction), and a finiteness
+    # scan of its K x N values would cost more than a tenth of a training step.
+    check_array("reach", reach, (lights.shape[0], num_pixels), finite=False)
     reach = reach.to(dtype)
     lights_h = torch.cat([lights, torch.ones_like(lights[:, :1])], dim=1)  # (K, 4)
     table = (emission.permute(0, 2, 1)[:, :, None, :] * lights_h.T[None, None]).reshape(-1, lights.shape[0])  # (M*3*4, K)
@@ -169,20 +171,22 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
         # l_k . n > 0  <=>  p_k . n > X . n: one (K, 3) @ (3, n) product; bool multiplies without a cast.
         return (lights @ normal) > _dot3(normal, points_t[:, part])
 
-    normal = torch.empty(3, num_pixels, dtype=dtype)
-    albedo = torch.empty(3, num_pixels, dtype=dtype)
     lit_reach = torch.empty(lights.shape[0], num_pixels, dtype=dtype)  # final s_kn f_kn / d_kn
     with torch.no_grad():
-        # Chunks of pixels keep the (K, n) shadow work in cache instead of streaming (K, N) tensors.
+        # The (K, n) shadow work and matrix products run in chunks of pixels that stay in cache;
+        # the per-pixel alternations run on all pixels at once (fewer, wider operations).
+        normal, albedo = view.clone(), torch.ones_like(view)
+        values = intensity.detach()
+        moments = torch.empty(3, 6, num_pixels, dtype=dtype)
+        rhs_moments = torch.empty(3, 3, num_pixels, dtype=dtype)
+        for _ in range(max(1, config.shadow_iterations)):
+            for start in range(0, num_pixels, config.chunk_pixels):
+                part = slice(start, start + config.chunk_pixels)
+                moments[..., part], rhs_moments[..., part] = moments_for(reach[:, part] * in_front(normal[:, part], part), table.detach(), values[..., part], part)
+            normal, albedo = _alternate(normal, albedo, moments, rhs_moments, config.damping, config.alternations)
         for start in range(0, num_pixels, config.chunk_pixels):
             part = slice(start, start + config.chunk_pixels)
-            part_normal, part_albedo = view[:, part], torch.ones_like(view[:, part])
-            values = intensity.detach()[:, :, part]
-            for _ in range(max(1, config.shadow_iterations)):
-                moments, rhs_moments = moments_for(reach[:, part] * in_front(part_normal, part), table.detach(), values, part)
-                part_normal, part_albedo = _alternate(part_normal, part_albedo, moments, rhs_moments, config.damping, config.alternations)
-            normal[:, part], albedo[:, part] = part_normal, part_albedo
-            lit_reach[:, part] = reach[:, part] * in_front(part_normal, part)
+            lit_reach[:, part] = reach[:, part] * in_front(normal[:, part], part)
     moments, rhs_moments = moments_for(lit_reach, table, intensity)
     normal, albedo = _alternate(normal, albedo, moments, rhs_moments, config.damping, config.grad_alternations)
     # Keep the camera-facing sign (a flipped solution has the same residual once albedo absorbs it).

@@ -84,9 +84,10 @@ class ShuffledPixels:
     window: int
     num_pixels: int
 
-    def every_pixel(self) -> ScenePixels:
-        """The scene's N pixels once each, in shuffled order, as views (auto exposure reads them all)."""
-        part, scene = slice(0, self.num_pixels), self.scene
+    def every_pixel(self, limit: int | None = None) -> ScenePixels:
+        """The scene's N pixels once each, in shuffled order, as views; with ``limit``, only the
+        first min(N, limit) of them: a fixed uniform random sample of the scene's pixels."""
+        part, scene = slice(0, self.num_pixels if limit is None else min(self.num_pixels, limit)), self.scene
         normal = None if scene.normal is None else scene.normal[part]
         return ScenePixels(scene.name, scene.rig, scene.transport.subset(part), scene.points[part], normal, scene.mask)
 
