@@ -148,25 +148,62 @@ def training_samplers(scenes: list[ScenePixels], config: TrainConfig) -> list[Sh
 
 
 def training_loss(logits: torch.Tensor, scenes: list[ShuffledPixels], config: TrainConfig, step: int, ps_config: UnrolledPSConfig) -> torch.Tensor:
-    """Loss of one step: a random window of every scene's shuffled pixels, simulated, reconstructed, compared."""
+    """Loss of one step: a random window of every scene's shuffled pixels, simulated, reconstructed,
+    compared; every scene weighs the same."""
     generator = step_generator(config.seed, step)
     patterns = logits_to_patterns(logits)
-    losses = []
+    draws = []
     for sampler in scenes:
         part = sampler.draw(generator)
         exposure = scene_exposure(sampler.every_pixel(EXPOSURE_PIXELS), patterns)
+        draws.append((sampler, part, capture_scene(sampler.scene, patterns, config.noise_scale, exposure, generator, part)))
+    losses = []
+    for (sampler, part, capture), (normal, albedo) in zip(draws, reconstruct_draws(draws, config.solver, ps_config)):
         pixels = sampler.scene
-        capture = capture_scene(pixels, patterns, config.noise_scale, exposure, generator, part)
-        if config.solver == "full":
-            result = solve_ps(capture.captures, capture.emission, pixels.points[part], pixels.lights(), pixels.rig.falloff)
-            normal, albedo = result.normal, result.albedo
-        else:
-            normal, albedo = solve_ps_unrolled(capture.captures, capture.emission, pixels.points[part], pixels.lights(), pixels.rig.falloff, ps_config, reach=sampler.reach[:, part])
         loss = normal_loss(normal, pixels.normal[part], config.loss)
         if config.rerender_weight > 0:
             loss = loss + config.rerender_weight * rerender_loss(normal, albedo, capture, pixels, part)
         losses.append(loss)
     return torch.stack(losses).mean()
+
+
+def reconstruct_draws(draws: list, solver: str, ps_config: UnrolledPSConfig) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Normals and albedo of the sampled pixels of several scenes, one solve per group of scenes
+    that share lights and falloff (a few wide operations instead of many small ones).
+
+    Scenes are captured at different exposures, but both solvers are invariant to the scale of the
+    emission (their damping is relative): solving a group with its first scene's emission gives
+    every scene's normals exactly, and albedo scaled by that emission's exposure over the scene's.
+
+    Args:
+        draws: (sampler, part, capture) per scene: a ShuffledPixels, the slice of its window and
+            the Capture of those pixels.
+        solver: "unrolled" or "full" (``TrainConfig.solver``).
+        ps_config: settings of the unrolled solver.
+
+    Returns:
+        [(normal (P, 3), albedo (P, 3))] per draw, differentiable like the solvers' outputs.
+    """
+    groups: dict[tuple, list[int]] = {}
+    for index, (sampler, _, _) in enumerate(draws):
+        key = (sampler.scene.rig.falloff, tuple(sampler.scene.lights().reshape(-1).tolist()))
+        groups.setdefault(key, []).append(index)
+    solved: list = [None] * len(draws)
+    for members in groups.values():
+        first_sampler, _, first_capture = draws[members[0]]
+        pixels = first_sampler.scene
+        captures = torch.cat([draws[i][2].captures for i in members], dim=1)
+        points = torch.cat([draws[i][0].scene.points[draws[i][1]] for i in members])
+        if solver == "full":
+            result = solve_ps(captures, first_capture.emission, points, pixels.lights(), pixels.rig.falloff)
+            normal, albedo = result.normal, result.albedo
+        else:
+            reach = torch.cat([draws[i][0].reach[:, draws[i][1]] for i in members], dim=1)
+            normal, albedo = solve_ps_unrolled(captures, first_capture.emission, points, pixels.lights(), pixels.rig.falloff, ps_config, reach=reach)
+        sizes = [draws[i][2].captures.shape[1] for i in members]
+        for i, scene_normal, scene_albedo in zip(members, normal.split(sizes), albedo.split(sizes)):
+            solved[i] = (scene_normal, scene_albedo * (first_capture.exposure / draws[i][2].exposure))
+    return solved
 
 
 def cosine_schedule(config: TrainConfig):
