@@ -146,3 +146,30 @@ def test_full_solver_loss_has_finite_gradients(scene_dirs):
     loss = learn.training_loss(logits, scenes, config, 0, UnrolledPSConfig())
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(logits.grad).all() and float(logits.grad.abs().sum()) > 0
+
+
+@pytest.mark.parametrize("solver", ["unrolled", "full"])
+def test_joint_solve_of_scenes_equals_solving_each_scene(scene_dirs, solver):
+    """One solve for all training scenes (each captured at its own exposure) gives each scene's
+    normals, and albedo rescaled to the scene's own exposure, as solving the scenes one by one."""
+    from reconstruct.unrolled_ps import UnrolledPSConfig
+    from train.capture import capture_scene, scene_exposure
+    from train.scene_pixels import scene_pixels
+    from train.scene_sets import resolve_scenes
+
+    rig = load_rig()
+    config = _config(scene_dirs, solver=solver)
+    samplers = learn.training_samplers([scene_pixels(s, rig, True) for s in resolve_scenes(config.scenes, "train", rig)], config)
+    patterns = make_patterns("tri_random", 3, seed=1).double()
+    generator = torch.Generator().manual_seed(0)
+    draws = []
+    for sampler, exposure_scale in zip(samplers, (1.0, 0.2)):  # very different exposures
+        part = sampler.draw(generator)
+        exposure = exposure_scale * scene_exposure(sampler.every_pixel(), patterns)
+        draws.append((sampler, part, capture_scene(sampler.scene, patterns, 0.0, exposure, generator, part)))
+    joint = learn.reconstruct_draws(draws, solver, UnrolledPSConfig())
+    for draw, (normal, albedo) in zip(draws, joint):
+        alone_normal, alone_albedo = learn.reconstruct_draws([draw], solver, UnrolledPSConfig())[0]
+        assert normal.shape == (draw[2].captures.shape[1], 3)
+        torch.testing.assert_close(normal, alone_normal, atol=1e-6, rtol=0)
+        torch.testing.assert_close(albedo, alone_albedo, atol=1e-6, rtol=1e-5)
