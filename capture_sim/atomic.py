@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from capture_sim.errors import InputError
+
 
 @contextmanager
 def atomic_path(path: str | Path, suffix: str = ""):
@@ -18,8 +20,12 @@ def atomic_path(path: str | Path, suffix: str = ""):
     ``suffix`` keeps the file ending that some writers need (e.g. ``.png`` for matplotlib).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or ".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or ".tmp", dir=path.parent)
+    except OSError as err:
+        # Name the path the caller asked for, not the temporary file.
+        raise InputError(f"cannot write {path}: {err.strerror or err}") from None
     os.close(handle)
     try:
         yield Path(tmp)

@@ -24,9 +24,8 @@ Gradients (w.r.t. captures and emission; geometry and the shadow masks are const
 implicit-function-theorem gradients of the converged fixed point a* = Phi(a*) of one alternation
 Phi (``pixel_solve.implicit_step``): after the search, one differentiable Newton step
     a_out = a* + (I - dPhi/da)^-1 (Phi(a*) - a*)      (a*, dPhi/da detached)
-has the derivative (I - dPhi/da)^-1 dPhi/dtheta of the fixed point. Converged pixels output
-that step's value (a Newton refinement: it differs from the no-gradient result by less than the
-tolerance); unconverged ones keep the searched value with the same derivative. The cost is one
+has the derivative (I - dPhi/da)^-1 dPhi/dtheta of the fixed point. Every pixel outputs the
+searched value with that derivative, so values do not depend on gradient tracking. The cost is one
 alternation plus three small per-pixel backward passes; the shadowed (pixels x lights) weights
 are re-formed block by block in the backward pass instead of being kept. Unrolling a few
 alternations from a detached start would be cheaper but biased. The gradient is the same in every
@@ -227,12 +226,10 @@ def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, 
         vectors = differentiable_vectors(light_field, state.normal, lighting, state.moments.vectors)
         graph_moments = normalised_moments(vectors, captures, equation_weight, capture_scale)
         graph_albedo, graph_normal = implicit_step(albedo, graph_moments, config.damping)
-        # Converged pixels take the Newton step's value (it refines the fixed point, so outputs
-        # differ from the no-gradient ones by less than the tolerance); the others keep the
-        # searched value, where a step towards the fixed point of their mask could jump.
-        converged = state.converged[None]
-        albedo = torch.where(converged, graph_albedo, albedo + (graph_albedo - graph_albedo.detach()))
-        normal = torch.where(converged, graph_normal, normal + (graph_normal - graph_normal.detach()))
+        # Values stay the searched ones (identical with and without gradient tracking); only the
+        # derivative comes from the Newton step.
+        albedo = albedo + (graph_albedo - graph_albedo.detach())
+        normal = normal + (graph_normal - graph_normal.detach())
     albedo = albedo * (state.moments.capture_scale / state.moments.lighting_scale)
     flags = {"dark": dark, "saturated": saturated, "not_converged": ~state.converged}
     return finalise(normal.T, albedo.T, condition, flags, light_field, config)
@@ -264,6 +261,8 @@ def _check_inputs(captures, emission, points, lights, config, chunk_size):
         raise InputError("captures and emission must be torch tensors")
     if not (captures.is_floating_point() and emission.is_floating_point()):
         raise InputError("captures and emission must be floating-point tensors")
+    if captures.shape[0] < 1:
+        raise InputError("captures must hold at least one pattern")
     if captures.shape[0] != emission.shape[0]:
         raise InputError(f"captures have {captures.shape[0]} patterns but emission has {emission.shape[0]}")
     if emission.shape[1] != lights.shape[0]:
@@ -337,9 +336,9 @@ def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSC
 
 def check_image_inputs(captures, points, mask):
     """Check the shapes of image-shaped solver inputs: captures (M, H, W, 3), points (H, W, 3),
-    mask (H, W) bool (values are checked on the flattened inputs, once)."""
+    mask (H, W) bool (values are checked on the masked pixels only, by ``check_masked_inputs``)."""
     check_array("captures", captures, ("M", "H", "W", 3), finite=False)
-    check_array("points", points, (captures.shape[1], captures.shape[2], 3))
+    check_array("points", points, (captures.shape[1], captures.shape[2], 3), finite=False)
     check_array("mask", mask, (captures.shape[1], captures.shape[2]))
     if torch.as_tensor(mask).dtype != torch.bool:
         raise InputError("mask must be a bool array")
@@ -365,6 +364,13 @@ def scatter_result(result: PSResult, pixel_index: torch.Tensor, height: int, wid
         condition=scatter(result.condition, CONDITION_CAP),
         flags={name: scatter(value, False) for name, value in result.flags.items()},
     )
+
+
+def check_masked_inputs(check, flat_captures, emission, flat_points, pixel_index, lights, config, chunk_size) -> None:
+    """Run a solver's input ``check`` on the masked pixels only: values outside the mask (e.g. NaN
+    depth in the background of a real capture) are never read."""
+    masked_points = torch.as_tensor(flat_points)[pixel_index]
+    check(flat_captures[:, pixel_index] if isinstance(flat_captures, torch.Tensor) else flat_captures, emission, masked_points, lights, config, chunk_size)
 
 
 def image_pixels(captures, points, mask):
@@ -398,7 +404,7 @@ def solve_ps_image(
     """
     check_image_inputs(captures, points, mask)
     flat_captures, flat_points, pixel_index = image_pixels(captures, points, mask)
-    _check_inputs(flat_captures, emission, flat_points, lights, config, chunk_size)
+    check_masked_inputs(_check_inputs, flat_captures, emission, flat_points, pixel_index, lights, config, chunk_size)
 
     def solve_block(block_captures, lighting, block_points, block_lights, block_config):
         return _solve_block(block_captures, lighting, block_points, block_lights, falloff, block_config, chunk_size)

@@ -255,10 +255,12 @@ def alternation(albedo: torch.Tensor, moments: Moments, damping: float) -> tuple
 def alternate(albedo: torch.Tensor, moments: Moments, damping: float, tolerance_deg: float, max_alternations: int):
     """Iterate Phi for fixed moments until the normals stop moving.
 
-    A pixel stops when its normal moves by at most ``tolerance_deg``, or when the move stops
-    shrinking: the alternation never increases the residual, so a move that does not shrink is
-    rounding noise (ill-conditioned pixels in float32) that further steps cannot remove. Both count
-    as converged. Only pixels still moving are iterated.
+    A pixel stops when its normal moves by at most ``tolerance_deg``, or when a move no larger
+    than the rounding level sqrt(eps) of the dtype (about 0.02 deg in float32; below the default
+    tolerance in float64) fails to shrink: that is rounding noise of an ill-conditioned float32
+    solve, which further steps cannot remove. Both count as converged. Larger moves that do not
+    shrink (slow or non-monotone progress) keep iterating up to ``max_alternations``. Only pixels
+    still moving are iterated.
 
     Args:
         albedo: (3, N) starting albedo.
@@ -271,6 +273,7 @@ def alternate(albedo: torch.Tensor, moments: Moments, damping: float, tolerance_
         (albedo (3, N), normal (3, N), converged (N,) bool) with albedo = A(normal).
     """
     tolerance = math.radians(tolerance_deg)  # chord length ~ angle for small angles
+    rounding = torch.finfo(albedo.dtype).eps ** 0.5
     albedo, normal = alternation(albedo, moments, damping)
     if max_alternations < 2:
         return albedo, normal, torch.zeros(albedo.shape[1], dtype=torch.bool)
@@ -285,7 +288,7 @@ def alternate(albedo: torch.Tensor, moments: Moments, damping: float, tolerance_
             break
         new_albedo, new_normal = alternation(albedo[:, active], moments.subset(active), damping)
         move = (new_normal - normal[:, active]).square().sum(0).sqrt()
-        done = (move <= tolerance) | (move >= previous_move[active])
+        done = (move <= tolerance) | ((move >= previous_move[active]) & (move <= rounding))
         albedo[:, active], normal[:, active], previous_move[active] = new_albedo, new_normal, move
         converged[active[done]] = True
         active = active[~done]

@@ -187,12 +187,14 @@ def woodham_olat_reference(captures, light_emission, points, lights, falloff, da
             for k in range(len(lights)):
                 for c in range(3):
                     value = pixel_captures[k, c]
-                    usable = mask[k] and shadow_threshold * brightest[c] < value < saturation_threshold
-                    if usable:
+                    if not shadow_threshold * brightest[c] < value < saturation_threshold:
+                        continue
+                    # A shadowed light predicts zero: its equation still counts in the residual.
+                    energy[c] += (value / capture_scale) ** 2
+                    if mask[k]:
                         b = light_emission[k, c] * weights[k] * directions[k]
                         raw_moment[c] += np.outer(b, b)
                         raw_projection[c] += value * b
-                        energy[c] += (value / capture_scale) ** 2
             lighting_scale = max(np.sqrt(sum(np.trace(raw_moment[c]) for c in range(3)) / 9), 1e-150)
             moment = raw_moment / lighting_scale**2
             projection = raw_projection / (lighting_scale * capture_scale)

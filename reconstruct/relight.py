@@ -132,6 +132,11 @@ def relighting_metrics(predicted: torch.Tensor, truth: torch.Tensor, pixel_index
     check_array("predicted", predicted, ("M", "N", 3))
     check_array("truth", truth, tuple(predicted.shape))
     check_array("pixel_index", pixel_index, (predicted.shape[1],))
+    pixel_index = torch.as_tensor(pixel_index)
+    if pixel_index.numel() == 0:
+        raise InputError("relighting metrics need at least one pixel")
+    if pixel_index.is_floating_point() or pixel_index.dtype == torch.bool or int(pixel_index.min()) < 0 or int(pixel_index.max()) >= height * width:
+        raise InputError(f"pixel_index must hold integer indices into the {height} x {width} image")
     predicted = predicted.detach().double().clamp(0.0, 1.0)
     truth = truth.detach().double().clamp(0.0, 1.0)
     count = predicted.shape[0]

@@ -11,11 +11,12 @@ sampled pixels costs a few matrix products and wide elementwise operations:
 - b for all pixels comes from ONE matrix product: with u_kn = s_kn f_kn / d_kn and
   l_kn = (p_k - X_n) / d_kn, b[m, c, :, n] = sum_k E[m, k, c] u_kn p_k - X_n sum_k E[m, k, c] u_kn,
   i.e. (M * 3 * 4, K) @ (K, N);
-- the shadow masks and the alternations run without gradient to (near) convergence;
+- the shadow masks and the alternations run a fixed number of times, without gradient;
 - gradients come from ``grad_alternations`` alternations unrolled from the detached solution with
   the final masks: a truncated implicit gradient, cheap in memory ((K, N) is kept once).
-The converged values equal the full solver's on well-posed pixels; training uses this, evaluation
-uses ``solve_ps`` (validity flags, restarts, exact implicit gradients).
+With the default (small) iteration counts the values are not converged: on noise-free data they
+are typically within a degree or two of the full solver's, more on silhouettes. Training uses
+this, evaluation uses ``solve_ps`` (convergence, validity flags, restarts, exact implicit gradients).
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ from dataclasses import dataclass
 
 import torch
 
-from capture_sim.errors import check_array
+from capture_sim.errors import InputError, check_array
 
 # Unique entries of a symmetric 3x3 matrix, in the order (00, 11, 22, 01, 02, 12).
 _ROWS = (0, 1, 2, 0, 0, 1)
@@ -49,6 +50,12 @@ class UnrolledPSConfig:
     chunk_pixels: int = 8192
     """Pixels per chunk of the gradient-free iterations (a speed setting; results do not depend on it)."""
 
+    def __post_init__(self):
+        if self.shadow_iterations < 1 or self.alternations < 0 or self.grad_alternations < 0 or self.chunk_pixels < 1:
+            raise InputError("UnrolledPSConfig: shadow_iterations and chunk_pixels must be >= 1, alternation counts >= 0")
+        if not self.damping > 0:
+            raise InputError(f"UnrolledPSConfig.damping must be positive, got {self.damping}")
+
 
 def _symmetric_apply(matrix: torch.Tensor, vector: torch.Tensor) -> torch.Tensor:
     """S v for symmetric S given as (..., 6, N) unique entries and v (..., 3, N); (..., 3, N)."""
@@ -62,18 +69,19 @@ def _dot3(left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
     return left[..., 0, :] * right[..., 0, :] + left[..., 1, :] * right[..., 1, :] + left[..., 2, :] * right[..., 2, :]
 
 
-def _symmetric_solve(system: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
-    """Solve symmetric 3x3 systems (6, N) (unique entries) for rhs (3, N) by the adjugate; (3, N).
+def _symmetric_direction(system: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
+    """S^-1 rhs up to a positive factor, for symmetric positive definite 3x3 systems S (6, N)
+    (unique entries) and rhs (3, N); (3, N). Callers normalise the result.
 
-    Callers normalise the result, so the determinant only needs a safe sign and size.
+    adj(S) rhs is divided by |det(S)|, not det(S): the determinant keeps the result of order one,
+    and its sign, which rounding can make negative in float32, cannot flip the normal.
     """
     a, b, c, d, e, f = system.unbind(0)  # [[a, d, e], [d, b, f], [e, f, c]]
     c00, c11, c22 = b * c - f * f, a * c - e * e, a * b - d * d
     c01, c02, c12 = e * f - d * c, d * f - b * e, d * e - a * f
     det = a * c00 + d * c01 + e * c02
     adjugate = torch.stack([c00, c11, c22, c01, c02, c12])
-    safe = torch.where(det.abs() > 1e-30, det, torch.full_like(det, 1e-30))
-    return _symmetric_apply(adjugate, rhs) / safe
+    return _symmetric_apply(adjugate, rhs) / det.abs().clamp_min(1e-30)
 
 
 def _alternate(normal, albedo, moments, rhs_moments, damping, steps):
@@ -92,7 +100,7 @@ def _alternate(normal, albedo, moments, rhs_moments, damping, steps):
         system = ((albedo * albedo)[:, None, :] * moments).sum(0)  # (6, N)
         scale = (system[0] + system[1] + system[2]) / 3.0
         system = torch.cat([system[:3] + (damping * scale + 1e-30), system[3:]])
-        direction = _symmetric_solve(system, (albedo[:, None, :] * rhs_moments).sum(0))
+        direction = _symmetric_direction(system, (albedo[:, None, :] * rhs_moments).sum(0))
         # A zero direction (dark pixel) keeps the previous normal: no 0/0 in value or gradient.
         length2 = _dot3(direction, direction)
         usable = length2 > 1e-30
@@ -115,6 +123,9 @@ def light_reach(points: torch.Tensor, lights: torch.Tensor, falloff) -> torch.Te
     Returns:
         (K, N) tensor in 1 / metres (times the falloff's unit), points' dtype; distances are
         clamped to >= 1 mm as in the full solver.
+
+    Raises:
+        InputError: the falloff is not positive and finite at every distance.
     """
     lights = lights.to(points.dtype)
     square = torch.cdist(lights, points).square().clamp_min(1e-6)
@@ -122,7 +133,11 @@ def light_reach(points: torch.Tensor, lights: torch.Tensor, falloff) -> torch.Te
         inverse = torch.rsqrt(square)
         return inverse * inverse * inverse  # f / d = d^-3 without a square root or pow
     distance = square.sqrt()
-    return falloff(distance) / distance
+    reach = falloff(distance) / distance
+    # DESIGN section 3: a fitted falloff can have a pole and change sign inside the working range.
+    if not bool((torch.isfinite(reach) & (reach > 0)).all()):
+        raise InputError(f"falloff is not positive and finite over light distances {float(distance.min()):.3f}..{float(distance.max()):.3f} m")
+    return reach
 
 
 def solve_ps_unrolled(captures, emission, points, lights, falloff, config: UnrolledPSConfig = UnrolledPSConfig(), reach: torch.Tensor | None = None):
@@ -179,7 +194,7 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
         values = intensity.detach()
         moments = torch.empty(3, 6, num_pixels, dtype=dtype)
         rhs_moments = torch.empty(3, 3, num_pixels, dtype=dtype)
-        for _ in range(max(1, config.shadow_iterations)):
+        for _ in range(config.shadow_iterations):
             for start in range(0, num_pixels, config.chunk_pixels):
                 part = slice(start, start + config.chunk_pixels)
                 moments[..., part], rhs_moments[..., part] = moments_for(reach[:, part] * in_front(normal[:, part], part), table.detach(), values[..., part], part)
@@ -189,6 +204,7 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
             lit_reach[:, part] = reach[:, part] * in_front(normal[:, part], part)
     moments, rhs_moments = moments_for(lit_reach, table, intensity)
     normal, albedo = _alternate(normal, albedo, moments, rhs_moments, config.damping, config.grad_alternations)
-    # Keep the camera-facing sign (a flipped solution has the same residual once albedo absorbs it).
+    # Return camera-facing normals: a back-facing solution (specular or unconverged pixels) is
+    # flipped; its albedo is left as solved.
     facing = torch.where(_dot3(normal, view) < 0, -1.0, 1.0).to(dtype)
     return (normal * facing).T, albedo.T

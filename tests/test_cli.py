@@ -71,6 +71,10 @@ def test_bad_inputs_give_one_line_and_status_2(tmp_path, scene_file, capsys):
         ["evaluate", "--scenes", str(scene_file), "--patterns", str(outside)],
         ["export", "--patterns", str(wrong_grid), "--out", str(tmp_path / "f")],
         ["train", "--init", "no_such_family", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "g.npz")],
+        ["train", "--seed", "-1", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "g.npz")],
+        ["search", "--seed", "-1", "--maxeval", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "h.npz")],
+        ["patterns", "make", "--family", "mono_gradient", "--M", "4", "--out", str(scene_file / "inside_a_file.npz")],
+        ["bench", "ps", "--size", "8x8"],
     ]
     for argv in cases:
         capsys.readouterr()

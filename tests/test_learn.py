@@ -1,4 +1,6 @@
 """Pattern learning: reproducible, resumable, improves its loss, clear errors."""
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -90,6 +92,37 @@ def test_bad_config_raises(tmp_path, scene_dirs):
         TrainConfig(loss="l7")
     with pytest.raises(InputError):
         TrainConfig(num_patterns=0)
+    for bad in (dict(checkpoint_every=0), dict(val_every=-1), dict(seed=-1), dict(init="no_such_family")):
+        with pytest.raises(InputError):
+            TrainConfig(**bad)
+
+
+def test_config_files_are_type_checked(tmp_path):
+    from train.config_io import load_config
+
+    for body in ("scene_size = 24", 'steps = "two"', 'scenes = "one/folder"', "learning_rate = true"):
+        path = tmp_path / "c.toml"
+        path.write_text(body + "\n")
+        with pytest.raises(InputError):
+            load_config(TrainConfig, path)
+    path.write_text("learning_rate = 2\n")  # an integer is a fine float
+    assert load_config(TrainConfig, path).learning_rate == 2
+
+
+def test_user_scenes_without_val_scenes_are_not_validated_and_reruns_keep_the_loss(tmp_path, scene_dirs):
+    import json
+
+    from patterns.io import load_patterns
+
+    config = _config(scene_dirs, val_scenes=())
+    result = train_patterns(config, tmp_path / "a.npz", progress=False)
+    assert result.val_history == []
+    # Running the finished command again rewrites the same patterns with the same final loss.
+    again = train_patterns(config, tmp_path / "a.npz", progress=False)
+    np.testing.assert_array_equal(result.patterns, again.patterns)
+    _, meta = load_patterns(tmp_path / "a.npz")
+    assert meta["final_train_loss"] == pytest.approx(result.final_loss) and math.isfinite(meta["final_train_loss"])
+    json.dumps(meta, allow_nan=False)
 
 
 def test_shuffled_windows_are_views_of_every_pixel(scene_dirs):

@@ -141,3 +141,40 @@ def test_woodham_degenerate_inputs_stay_finite(problem):
     assert not result.valid[:5].any()
     black = solve_woodham(problem["captures"][:3], torch.zeros_like(problem["emission"][:3]), points, lights, Falloff())
     assert torch.isfinite(black.normal).all() and not black.valid.any()
+
+
+def test_bad_inputs_and_background_nan_from_the_review(problem):
+    """Inputs found to raise raw Python errors, and NaN outside the mask of image solves."""
+    from capture_sim.errors import InputError
+    from reconstruct.photometric_stereo import solve_ps_image
+    from reconstruct.relight import relighting_metrics
+    from reconstruct.unrolled_ps import UnrolledPSConfig, light_reach
+    from reconstruct.woodham import solve_woodham_image
+
+    scene, lights = problem["scene"], problem["scene"].lights
+    with pytest.raises(InputError):
+        solve_ps(problem["captures"][:0], problem["emission"][:0], problem["points"], lights, Falloff())
+    with pytest.raises(InputError):
+        solve_woodham_olat(problem["olat"].numpy(), problem["points"], lights, Falloff(), 1.0)
+    for bad_index in (torch.zeros(0, dtype=torch.long), torch.tensor([99]), torch.tensor([1.0])):
+        values = torch.zeros(2, bad_index.numel(), 3)
+        with pytest.raises(InputError):
+            relighting_metrics(values, values, bad_index, 4, 4)
+    with pytest.raises(InputError):
+        UnrolledPSConfig(chunk_pixels=0)
+    with pytest.raises(InputError):
+        UnrolledPSConfig(shadow_iterations=0)
+    # The reference rig's fitted falloff has a pole inside the working range: refused, not used.
+    with pytest.raises(InputError):
+        light_reach(problem["points"], lights, Falloff("fitted", -5.4580, 14.7449))
+    # NaN depth and captures outside the mask are never read.
+    captures = torch.einsum("mkc,khwc->mhwc", problem["emission"], scene.olat)
+    points = scene.points.clone()
+    outside = ~scene.mask
+    captures[:, outside] = float("nan")
+    points[outside] = float("nan")
+    result = solve_ps_image(captures, problem["emission"], points, scene.mask, lights, Falloff())
+    assert result.valid[scene.mask].any() and not result.valid[outside].any()
+    assert torch.isfinite(result.normal).all()
+    woodham = solve_woodham_image(captures, problem["emission"], points, scene.mask, lights, Falloff())
+    assert torch.isfinite(woodham.normal).all()

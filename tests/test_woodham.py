@@ -90,3 +90,18 @@ def test_bad_inputs_raise(sphere):
         solve_woodham_olat(olat, points, sphere.lights, Falloff(), exposure=0.0)
     with pytest.raises(InputError):
         solve_woodham_olat(olat, points, sphere.lights, Falloff(), config=WoodhamConfig(shadow_threshold=1.5))
+
+
+@pytest.mark.parametrize("exposure", [0.37, 0.1, 2.2, 0.013])
+def test_float32_diagonal_emission_is_detected_as_olat(exposure):
+    """A one-light-at-a-time emission with any exposure in float32 takes the OLAT path (a sum
+    comparison used to miss it through rounding)."""
+    from reconstruct.relight import olat_emission
+    from reconstruct.woodham import _olat_emission
+
+    emission = olat_emission(torch.arange(144), 144, exposure)
+    assert emission.dtype == torch.float32
+    detected = _olat_emission(emission)
+    assert detected is not None and torch.equal(detected, torch.diagonal(emission, dim1=0, dim2=1).T)
+    emission[3, 5, 1] = 1e-6
+    assert _olat_emission(emission) is None

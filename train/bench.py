@@ -416,7 +416,7 @@ BENCHMARKS: dict[str, Callable[..., dict]] = {"sim": bench_sim, "ps": bench_ps, 
 
 
 def run_bench(target: str, json_path: Path | None, repeats: int = 5) -> dict:
-    """Run one benchmark target, print a summary and write JSON atomically."""
+    """Run one benchmark target and write its JSON atomically; returns the results."""
     if target not in BENCHMARKS:
         raise InputError(f"unknown benchmark {target!r}; choose from {', '.join(BENCHMARKS)}")
     result = BENCHMARKS[target](repeats=repeats)

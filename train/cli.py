@@ -82,6 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--M", type=int, dest="num_patterns", default=None)
     train.add_argument("--init", default=None, help="family name or pattern file to start from")
     train.add_argument("--scenes", type=Path, nargs="+", default=None, help="training scenes (default: synthetic train split)")
+    train.add_argument(
+        "--val-scenes", type=Path, nargs="+", default=None, help="validation scenes (default: the synthetic test split with the default training scenes, none with --scenes)"
+    )
     train.add_argument("--steps", type=int, default=None)
     train.add_argument("--seed", type=int, default=None)
     train.add_argument("--logdir", type=Path, default=None, help="TensorBoard log folder")
@@ -91,8 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     search = commands.add_parser("search", help="NLopt search over a heuristic family's parameters")
     search.add_argument("--config", type=Path, default=None, help="TOML in configs/search/ (flags override it)")
-    search.add_argument("--family", required=True, help="family name (see `displex patterns list`)")
-    search.add_argument("--M", type=int, dest="num_patterns", required=True, help="number of patterns")
+    search.add_argument("--family", default=None, help="family name (see `displex patterns list`); default: the config's")
+    search.add_argument("--M", type=int, dest="num_patterns", default=None, help="number of patterns; default: the config's")
     search.add_argument("--algorithm", default=None, help="LN_BOBYQA (default), LN_COBYLA, LN_SBPLX, GN_CRS2_LM, GN_ESCH, GN_DIRECT_L, LD_MMA, LD_LBFGS")
     search.add_argument("--maxeval", type=int, default=None, help="largest number of objective evaluations")
     search.add_argument("--maxtime", type=float, default=None, help="wall-clock limit in seconds (0 = none)")
@@ -145,7 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument(
         "--sweep", action="store_true", help="with target ps: normal error against noise level for several methods (JSON and a chart next to it)"
     )
-    bench.add_argument("--size", type=_size, default=(128, 153), help="image size HxW of the --sweep scenes (default 128x153)")
+    bench.add_argument("--size", type=_size, default=None, help="image size HxW of the --sweep scenes (default 128x153)")
     bench.set_defaults(handler=_bench)
 
     return parser
@@ -169,13 +172,14 @@ def _train(args) -> None:
         "num_patterns": args.num_patterns,
         "init": args.init,
         "scenes": None if args.scenes is None else tuple(str(p) for p in args.scenes),
+        "val_scenes": None if args.val_scenes is None else tuple(str(p) for p in args.val_scenes),
         "steps": args.steps,
         "seed": args.seed,
         "rerender_weight": args.rerender_weight,
     }
     config = load_config(TrainConfig, args.config, overrides)
     result = train_patterns(config, args.out, logdir=args.logdir)
-    last = f", validation MAE {result.val_history[-1][1]:.2f} deg" if result.val_history else ""
+    last = f", validation MAE {result.val_history[-1][1]:.2f} deg" if result.val_history else " (not validated: pass --val-scenes)"
     print(f"wrote learned patterns to {args.out}{last}")
 
 
@@ -252,12 +256,14 @@ def _bench(args) -> None:
 
     if args.repeats < 1:
         raise InputError("--repeats must be at least 1")
+    if args.size is not None and not args.sweep:
+        raise InputError("--size applies to --sweep only (the timing benchmarks use the full 512 x 612 frame)")
     if args.sweep:
         if args.target != "ps":
             raise InputError(f"--sweep applies to target ps, not {args.target!r}")
-        from train.bench import run_sweep
+        from train.bench import DEFAULT_SIZE, run_sweep
 
-        document = run_sweep(args.json, args.size)
+        document = run_sweep(args.json, args.size or DEFAULT_SIZE)
         for row in document["methods"]:
             print(f"{row['label']:36s} " + "  ".join(f"{scale:g}: {mae:.3f}" for scale, mae in zip(document["noise_scales"], row["mae"])))
         if args.json is not None:
@@ -313,6 +319,9 @@ def run(argv: list[str] | None = None) -> int:
         return 2
     except FileNotFoundError as err:
         print(f"displex: error: file not found: {err.filename}", file=sys.stderr)
+        return 2
+    except OSError as err:
+        print(f"displex: error: {err.strerror or err}: {err.filename}", file=sys.stderr)
         return 2
     return 0
 

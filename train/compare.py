@@ -628,6 +628,19 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     return results
 
 
+def _scene_set_matches(index_path: Path, rig, config: CompareConfig) -> bool:
+    """Whether a synthesised scene set (its ``index.json``) was made with this rig, size and seed,
+    so that a rerun reuses it instead of silently mixing in scenes of other settings."""
+    if not index_path.exists():
+        return False
+    try:
+        index = json.loads(index_path.read_text())
+    except (OSError, ValueError):
+        return False
+    wanted = {"rig": rig.name, "height": config.scene_size[0], "width": config.scene_size[1], "seed": config.scene_seed}
+    return all(index.get(key) == value for key, value in wanted.items())
+
+
 def run_demo(out_dir: Path, progress: bool = True, config_path: Path | None = None, steps: int | None = None) -> dict:
     """The demo: synthesise the default scenes into ``out_dir/scenes`` and run the demo comparison.
 
@@ -649,7 +662,7 @@ def run_demo(out_dir: Path, progress: bool = True, config_path: Path | None = No
         config = dataclasses.replace(config, learned={**config.learned, "steps": steps}, learned_at=per_m)
     rig = load_rig(config.rig)
     scene_dir = out_dir / "scenes"
-    if not (scene_dir / "index.json").exists():
+    if not _scene_set_matches(scene_dir / "index.json", rig, config):
         write_scene_set(scene_dir, rig, config.scene_size[0], config.scene_size[1], config.scene_seed, progress=progress)
     config = dataclasses.replace(config, train_scenes=(str(scene_dir / "train"),), test_scenes=(str(scene_dir / "test"),))
     results = run_compare(config, out_dir, progress)

@@ -18,14 +18,27 @@ def config_from_dict(cls, values: dict, source: str = "config"):
     hints = typing.get_type_hints(cls)
     converted = {}
     for key, value in values.items():
-        hint = hints[key]
-        if hint in (tuple[int, int], tuple[float, ...], tuple[str, ...], tuple[int, ...]) or typing.get_origin(hint) is tuple:
-            value = tuple(value)
-        converted[key] = value
+        converted[key] = _checked_value(key, value, hints[key], source)
     try:
         return cls(**converted)
     except (TypeError, ValueError) as err:
         raise InputError(f"{source}: {err}") from None
+
+
+_SCALARS = {int: (int,), float: (int, float), str: (str,), bool: (bool,)}
+
+
+def _checked_value(key: str, value, hint, source: str):
+    """``value`` converted to the field's type hint (lists become tuples), or ``InputError``."""
+    if typing.get_origin(hint) is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise InputError(f"{source}: {key} must be a list, got {value!r}")
+        return tuple(value)
+    expected = _SCALARS.get(hint)
+    # bool is an int subclass: accept it only where a bool is expected.
+    if expected is not None and (not isinstance(value, expected) or (isinstance(value, bool) and hint is not bool)):
+        raise InputError(f"{source}: {key} must be of type {hint.__name__}, got {value!r}")
+    return value
 
 
 def load_config(cls, path: str | Path | None, overrides: dict | None = None):

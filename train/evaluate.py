@@ -1,19 +1,16 @@
 """Evaluation of a pattern set on scenes: simulate, reconstruct, measure (DESIGN section 5).
 
-Also the `displex evaluate` command: JSON per scene, and with --out the normal maps, error maps
-and a one-page summary figure.
+The `displex evaluate` command built on it lives in ``train.evaluate_command``.
 """
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import torch
 
 from capture_sim.errors import InputError
-from capture_sim.rig import DEFAULT_RIG, load_rig
 from capture_sim.simulator import auto_exposure, sensor
 from reconstruct.metrics import angular_error_deg, normal_metrics
 from reconstruct.photometric_stereo import PSConfig, PSResult, solve_ps

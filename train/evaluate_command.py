@@ -12,7 +12,7 @@ from capture_sim.atomic import save_npy, write_json
 from capture_sim.errors import InputError
 from capture_sim.rig import DEFAULT_RIG, load_rig
 from patterns.io import check_patterns_match_rig, load_patterns
-from train.evaluate import EvalSettings, error_map, evaluate_scene, mean_mae
+from train.evaluate import EvalSettings, error_map, evaluate_scene
 from train.figures import image_grid, normal_to_rgb, save_figure
 from train.scene_pixels import scene_pixels
 from train.scene_sets import resolve_scenes

@@ -72,7 +72,8 @@ class TrainConfig:
     scenes: tuple[str, ...] = ()
     """Training scene files or folders; empty = the default synthetic training split."""
     val_scenes: tuple[str, ...] = ()
-    """Validation scenes (logged only, never used to pick patterns); empty = the default test split."""
+    """Validation scenes (logged only, never used to pick patterns); empty = the default synthetic
+    test split when training on the default scenes, and no validation when ``scenes`` are given."""
     scene_size: tuple[int, int] = (128, 153)
     """Image size of the default synthetic scenes."""
     scene_seed: int = 0
@@ -105,6 +106,10 @@ class TrainConfig:
             raise InputError("learning_rate must be > 0 and final_lr_fraction in (0, 1]")
         if self.noise_scale < 0 or self.rerender_weight < 0:
             raise InputError("noise_scale and rerender_weight must be >= 0")
+        if self.checkpoint_every < 1 or self.val_every < 0 or self.seed < 0 or self.scene_seed < 0:
+            raise InputError("checkpoint_every must be >= 1; val_every, seed and scene_seed >= 0")
+        if self.init != "auto" and self.init not in FAMILIES and Path(self.init).suffix not in (".npz", ".npy"):
+            raise InputError(f"init must be 'auto', a family ({', '.join(FAMILIES)}) or a pattern file, got {self.init!r}")
 
 
 def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
@@ -238,12 +243,15 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
     out = Path(out)
     rig = load_rig(config.rig)
     train_scenes = training_samplers([scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed)], config)
-    val_scenes = [scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.val_scenes, "test", rig, config.scene_size, config.scene_seed)]
+    # Validating a user's training scenes against the synthetic defaults would report a number about
+    # scenes nobody asked for: without val_scenes, only the default training set validates.
+    validate = bool(config.val_scenes) or not config.scenes
+    val_scenes = [scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.val_scenes, "test", rig, config.scene_size, config.scene_seed)] if validate else []
     logits = patterns_to_logits(initial_patterns(config, rig.rows, rig.cols)).detach().requires_grad_()
     optimiser = torch.optim.Adam([logits], lr=config.learning_rate)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimiser, cosine_schedule(config))
     resolved = config_to_dict(config)
-    start_step, val_history = 0, []
+    start_step, val_history, loss_value = 0, [], float("nan")
     checkpoint = checkpoint_path(out)
     if checkpoint.exists():
         state = torch.load(checkpoint, weights_only=False)
@@ -254,10 +262,10 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
         optimiser.load_state_dict(state["optimiser"])
         scheduler.load_state_dict(state["scheduler"])
         start_step, val_history = state["step"], state["val_history"]
+        loss_value = state.get("loss", float("nan"))
     writer = _summary_writer(logdir)
     ps_config = UnrolledPSConfig()
     eval_settings = EvalSettings(noise_scale=config.noise_scale, seed=config.seed + 7919)
-    loss_value = float("nan")
     bar = tqdm(range(start_step, config.steps), initial=start_step, total=config.steps, desc=f"learning M={config.num_patterns}", disable=not progress, unit="step")
     for step in bar:
         optimiser.zero_grad()
@@ -270,12 +278,11 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
         if writer is not None:
             writer.add_scalar("train/loss", loss_value, done)
             writer.add_scalar("train/learning_rate", scheduler.get_last_lr()[0], done)
-        if (config.val_every and done % config.val_every == 0) or done == config.steps:
-            val_mae = _validate(logits, val_scenes, eval_settings, writer, done)
-            val_history.append((done, val_mae))
-            bar.set_postfix(loss=f"{loss_value:.4f}", val_mae=f"{val_mae:.2f}")
+        if val_scenes and ((config.val_every and done % config.val_every == 0) or done == config.steps):
+            val_history.append((done, _validate(logits, val_scenes, eval_settings, writer, done)))
+        bar.set_postfix(loss=f"{loss_value:.4f}", **({"val_mae": f"{val_history[-1][1]:.2f}"} if val_history else {}))
         if done % config.checkpoint_every == 0 or done == config.steps:
-            state = {"config": resolved, "logits": logits.detach().clone(), "optimiser": optimiser.state_dict(), "scheduler": scheduler.state_dict(), "step": done, "val_history": val_history}
+            state = {"config": resolved, "logits": logits.detach().clone(), "optimiser": optimiser.state_dict(), "scheduler": scheduler.state_dict(), "step": done, "val_history": val_history, "loss": loss_value}
             with atomic_path(checkpoint, suffix=".pt") as tmp:
                 torch.save(state, tmp)
     if writer is not None:
@@ -288,7 +295,7 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
         "rig": rig.name,
         "config": resolved,
         "val_mae_history": val_history,
-        "final_train_loss": loss_value,
+        "final_train_loss": loss_value if math.isfinite(loss_value) else None,
     }
     save_patterns(out, learned, meta)
     write_json(out.with_name(out.stem + ".config.json"), resolved)

@@ -323,7 +323,7 @@ def _pixels_text(results: dict) -> str:
 def _measurement_caption(results: dict) -> str:
     default = results["default_noise"]
     return (
-        f"Measured on {len(results['test_scenes'])} held-out test scenes ({results['test_pixels']} masked pixels; "
+        f"Measured on {len(results['test_scenes'])} held-out test scenes ({results['test_pixels']} masked pixels in all; "
         f"{', '.join(results['test_scenes'])}), rig {results['rig']} ({results['grid'][0]} x {results['grid'][1]} superpixels). "
         "Captures are simulated from the OLAT stacks (display gamma and backlight, Poisson-Gaussian noise at the given scale "
         "times the rig's noise variances, clipping, quantisation) with auto exposure per scene, then reconstructed with the "

@@ -109,6 +109,8 @@ class SearchConfig:
             raise InputError(f"start must be one of {', '.join(PRESETS)}, got {self.start!r}")
         if self.maxeval < 1:
             raise InputError(f"maxeval must be >= 1, got {self.maxeval}")
+        if self.seed < 0 or self.scene_seed < 0:
+            raise InputError("seed and scene_seed must be >= 0")
         if self.maxtime is not None and not self.maxtime >= 0:
             raise InputError(f"maxtime must be >= 0 seconds (0 = no limit), got {self.maxtime}")
         if self.xtol_rel < 0 or self.ftol_abs < 0 or not 0 < self.initial_step <= 1:
