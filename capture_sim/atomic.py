@@ -1,7 +1,6 @@
 """Atomic file writes: write to a temporary file in the target folder, then rename over the target."""
 from __future__ import annotations
 
-import io
 import json
 import os
 import tempfile
@@ -27,6 +26,10 @@ def atomic_path(path: str | Path, suffix: str = ""):
         # Name the path the caller asked for, not the temporary file.
         raise InputError(f"cannot write {path}: {err.strerror or err}") from None
     os.close(handle)
+    # mkstemp makes the file owner-only; give it the permissions a plain open() would.
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
     try:
         yield Path(tmp)
         os.replace(tmp, path)
@@ -53,13 +56,11 @@ def write_json(path: str | Path, obj) -> None:
 
 def save_npy(path: str | Path, array: np.ndarray) -> None:
     """Save one array as .npy atomically."""
-    buffer = io.BytesIO()
-    np.save(buffer, array)
-    write_bytes(path, buffer.getvalue())
+    with atomic_path(path, suffix=".npy") as tmp:
+        np.save(tmp, array)
 
 
 def save_npz(path: str | Path, compressed: bool = False, **arrays) -> None:
-    """Save arrays as .npz atomically."""
-    buffer = io.BytesIO()
-    (np.savez_compressed if compressed else np.savez)(buffer, **arrays)
-    write_bytes(path, buffer.getvalue())
+    """Save arrays as .npz atomically (written straight to the temporary file: no in-memory copy)."""
+    with atomic_path(path, suffix=".npz") as tmp:
+        (np.savez_compressed if compressed else np.savez)(tmp, **arrays)

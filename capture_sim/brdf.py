@@ -4,14 +4,17 @@
 
 with alpha = roughness ** 2 (perceptual roughness, as in most renderers), D the GGX (Trowbridge-Reitz)
 distribution, G the Smith masking-shadowing with the Schlick-GGX approximation k = alpha / 2, and
-F either constant 1 (rho_s is then the specular albedo) or Schlick's approximation with normal
-reflectance rho_s. All inputs broadcast; directions are unit vectors in any common frame.
+F either constant 1 (rho_s is then the specular albedo) or Schlick's approximation
+F = F0 + (1 - F0) (1 - h.v)^5 of a dielectric, F0 = 0.04, with rho_s scaling the lobe. All inputs
+broadcast; directions are unit vectors in any common frame.
 """
 from __future__ import annotations
 
 import math
 
 import torch
+
+from capture_sim.errors import InputError
 
 _EPS = 1e-6
 
@@ -58,6 +61,6 @@ def cook_torrance_specular(
         v_dot_h = (view_dir * half).sum(-1).clamp(0.0, 1.0)
         lobe = lobe * (0.04 + 0.96 * (1.0 - v_dot_h) ** 5)
     elif fresnel != "constant":
-        raise ValueError(f"fresnel must be 'constant' or 'schlick', got {fresnel!r}")
+        raise InputError(f"fresnel must be 'constant' or 'schlick', got {fresnel!r}")
     visible = (n_dot_l > 0) & (n_dot_v > 0)
     return torch.where(visible, lobe, torch.zeros_like(lobe))

@@ -105,7 +105,10 @@ def load_dir_object(folder: str | Path, rig: Rig, downsample: int = 1) -> Scene:
         image_paths = [image_dir / f"{i:03d}.png" for i in range(num_lights)]
         _require_files(image_paths + [image_dir / "black.png", folder / "mask.png"], folder)
         black = _read_image(image_dir / "black.png")
-        notes["olat"] = "PNG / full scale minus black.png (backlight-only capture), clamped at 0"
+        notes["olat"] = (
+            "PNG / full scale minus black.png (backlight-only capture), clamped at 0, divided per light by "
+            "(1 + B_k)^gamma - B_k^gamma (the display's emission step from set value 0 to 1 with backlight B_k)"
+        )
     else:
         image_paths = _pms_image_paths(folder, num_lights)
         _require_files(image_paths + [folder / "mask.png"], folder)
@@ -124,14 +127,20 @@ def load_dir_object(folder: str | Path, rig: Rig, downsample: int = 1) -> Scene:
         raise InputError(f"{folder}: black.png is {black.shape[1]} x {black.shape[0]}, mask.png is {width} x {height}")
 
     out_h, out_w = height // downsample, width // downsample
+    backlight = rig.backlight.reshape(-1)
+    emission_step = (1.0 + backlight) ** rig.gamma - backlight**rig.gamma
     olat = np.zeros((num_lights, out_h, out_w, 3), dtype=np.float32)
     for file_index, path in enumerate(image_paths):
         image = _read_image(path)
         if image.shape[:2] != (height, width):
             raise InputError(f"{path}: image is {image.shape[1]} x {image.shape[0]}, mask.png is {width} x {height}")
+        light = light_of_file[file_index]
         if black is not None:
-            image = np.clip(image - black, 0.0, None)
-        olat[light_of_file[file_index]] = _block_mean(image, downsample)
+            # image - black = s ((1 + B_k)^gamma - B_k^gamma) O_k under the display model (DESIGN section
+            # 3): divide by the per-light step so that O_k is radiance per unit display intensity (the
+            # global s only scales every capture, which auto exposure absorbs).
+            image = np.clip(image - black, 0.0, None) / emission_step[light]
+        olat[light] = _block_mean(image, downsample)
 
     normal_full, depth_full = _read_geometry(folder, layout, (height, width), notes)
     valid = mask_full.copy()
@@ -236,7 +245,7 @@ def _read_image(path: Path) -> np.ndarray:
             mode = image.mode
             if mode in ("I;16", "I;16B", "I;16L"):
                 values = np.asarray(image, dtype=np.float64) / 65535.0
-            elif mode in ("RGB", "RGBA", "L", "P", "LA"):
+            elif mode in ("RGB", "RGBA", "L", "P", "LA", "1"):
                 values = np.asarray(image.convert("RGB"), dtype=np.float64) / 255.0
             else:
                 values = None

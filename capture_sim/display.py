@@ -25,7 +25,7 @@ def display_emission(patterns: torch.Tensor, backlight: torch.Tensor, gamma: flo
         (M, K, 3) emitted intensity L in light order k = r * C + c, differentiable in ``patterns``.
     """
     check_array("patterns", patterns, ("...", 3), value_range=(0.0, 1.0))
-    flat = patterns.reshape(patterns.shape[0], -1, 3)
+    flat = torch.as_tensor(patterns).reshape(patterns.shape[0], -1, 3)
     light_backlight = torch.as_tensor(backlight, dtype=flat.dtype).reshape(1, -1, 1)
     check_array("backlight", light_backlight, (1, flat.shape[1], 1))
     return scale * (flat + light_backlight) ** gamma

@@ -46,6 +46,8 @@ def render_olat(
         diffuse, specular: (K, N, 3) radiance per unit display intensity.
     """
     light_dirs, distance = light_geometry(points, lights)  # (N, K, 3), (N, K)
+    if getattr(falloff, "kind", "inverse_square") != "inverse_square":
+        falloff.check(distance)  # DESIGN section 3: a fitted falloff can be negative or infinite
     view_dir = view_directions(points)[:, None, :]  # (N, 1, 3)
     n_dot_l = (normals[:, None, :] * light_dirs).sum(-1)
     irradiance = n_dot_l.clamp_min(0.0) * falloff(distance)  # (N, K)

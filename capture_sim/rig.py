@@ -61,6 +61,11 @@ class NoiseModel:
     read_std: float = 5e-4
     """Read-noise standard deviation sigma_read, in units of full scale."""
 
+    def __post_init__(self):
+        values = (self.shot, self.read_std)
+        if not all(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0 for v in values):
+            raise InputError(f"noise shot and read_std must be finite numbers >= 0, got {self.shot!r}, {self.read_std!r}")
+
     def scaled(self, factor: float) -> "NoiseModel":
         """Noise with both variance terms multiplied by ``factor`` (0 gives a noise-free sensor)."""
         return NoiseModel(shot=self.shot * factor, read_std=self.read_std * math.sqrt(factor))
@@ -82,6 +87,8 @@ class Falloff:
     def __post_init__(self):
         if self.kind not in ("inverse_square", "fitted"):
             raise InputError(f"falloff kind must be 'inverse_square' or 'fitted', got {self.kind!r}")
+        if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in (self.a, self.b)):
+            raise InputError(f"falloff a and b must be finite numbers, got {self.a!r}, {self.b!r}")
 
     def __call__(self, distance: torch.Tensor) -> torch.Tensor:
         """Falloff factor for distances ``distance`` (any shape, metres); same shape."""
@@ -142,9 +149,9 @@ class Rig:
         check_array(f"rig {self.name}: backlight", backlight, positions.shape[:2], value_range=(0.0, 1.0))
         object.__setattr__(self, "light_positions", positions)
         object.__setattr__(self, "backlight", backlight)
-        if self.gamma <= 0 or self.scale <= 0:
-            raise InputError(f"rig {self.name}: gamma and scale must be positive")
-        if self.exposure is not None and not self.exposure > 0:
+        if not (math.isfinite(self.gamma) and math.isfinite(self.scale) and self.gamma > 0 and self.scale > 0):
+            raise InputError(f"rig {self.name}: gamma and scale must be positive and finite")
+        if self.exposure is not None and not (self.exposure > 0 and math.isfinite(self.exposure)):
             raise InputError(f"rig {self.name}: exposure must be positive or auto")
         if self.bit_depth is not None and not 1 <= self.bit_depth <= 24:
             raise InputError(f"rig {self.name}: bit_depth must be 1..24 or none")
@@ -226,16 +233,28 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
             gamma=float(display.get("gamma", 2.2)),
             scale=float(display.get("scale", 1.0)),
             falloff=Falloff(**config.get("falloff", {})),
-            exposure=None if exposure == "auto" else float(exposure),
+            exposure=None if exposure == "auto" else _number("exposure", exposure),
             noise=NoiseModel(**config.get("noise", {})),
-            bit_depth=None if bit_depth in (0, "none") else int(bit_depth),
+            bit_depth=None if bit_depth in (0, "none") else _whole_number("bit_depth", bit_depth),
             working_distance=float(config.get("working_distance", 0.5)),
             panel_pixels=tuple(display.get("panel_pixels", (2160, 3840))),
         )
     except KeyError as missing:
         raise InputError(f"rig {default_name}: missing key {missing}") from None
-    except TypeError as err:
+    except (TypeError, ValueError) as err:
         raise InputError(f"rig {default_name}: {err}") from None
+
+
+def _number(name: str, value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise InputError(f"{name} must be a number or 'auto', got {value!r}")
+    return float(value)
+
+
+def _whole_number(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value):
+        raise InputError(f"{name} must be a whole number, got {value!r}")
+    return int(value)
 
 
 def panel_positions(

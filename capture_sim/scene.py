@@ -15,7 +15,7 @@ import torch
 
 from capture_sim.atomic import save_npz
 from capture_sim.errors import InputError, check_array
-from capture_sim.geometry import pixel_rays
+from capture_sim.geometry import points_from_depth
 from capture_sim.rig import Camera, Rig
 
 
@@ -65,11 +65,11 @@ class Scene:
 
     def points(self, working_distance: float, dtype=torch.float32) -> torch.Tensor:
         """(H, W, 3) surface points in metres: from the depth map, else a plane at ``working_distance``."""
-        rays = pixel_rays(self.K_cam, self.height, self.width, dtype=torch.float64)
-        depth = torch.full(rays.shape[:2], float(working_distance), dtype=torch.float64)
         if self.depth is not None:
             depth = torch.as_tensor(self.depth, dtype=torch.float64)
-        return (depth[..., None] * rays).to(dtype)
+        else:
+            depth = torch.full((self.height, self.width), float(working_distance), dtype=torch.float64)
+        return points_from_depth(depth, self.K_cam).to(dtype)
 
 
 def validate_scene(scene: Scene) -> None:
@@ -85,6 +85,9 @@ def validate_scene(scene: Scene) -> None:
     if scene.mask.dtype != np.bool_:
         raise InputError(f"{name}: mask must be bool, got {scene.mask.dtype}")
     check_array(f"{name}: K_cam", scene.K_cam, (3, 3))
+    intrinsics = np.asarray(scene.K_cam, dtype=np.float64)
+    if not (intrinsics[0, 0] > 0 and intrinsics[1, 1] > 0 and np.array_equal(intrinsics[2], [0.0, 0.0, 1.0])):
+        raise InputError(f"{name}: K_cam must have fx, fy > 0 and last row (0, 0, 1)")
     check_array(f"{name}: light_positions", scene.light_positions, ("R", "C", 3))
     rows, cols = scene.light_positions.shape[:2]
     if rows * cols != num_lights:
@@ -93,6 +96,12 @@ def validate_scene(scene: Scene) -> None:
         )
     if scene.normal is not None:
         check_array(f"{name}: normal", scene.normal, (height, width, 3))
+        inside = np.asarray(scene.normal, dtype=np.float64)[scene.mask]
+        if inside.size and float(np.abs(np.linalg.norm(inside, axis=-1) - 1).max()) > 1e-2:
+            raise InputError(f"{name}: normals inside the mask must be unit vectors")
+        # Grazing normals may lean slightly past n_z = 0; a majority facing away is a flipped convention.
+        if inside.size and float((inside[:, 2] > 0).mean()) > 0.5:
+            raise InputError(f"{name}: most normals face away from the camera (n_z > 0); DESIGN section 2 wants n_z < 0")
     if scene.depth is not None:
         check_array(f"{name}: depth", scene.depth, (height, width))
         if bool((scene.depth[scene.mask] <= 0).any()):
@@ -120,6 +129,8 @@ def load_scene(path: str | Path) -> Scene:
     for required in ("olat", "mask", "K_cam", "light_positions"):
         if required not in arrays:
             raise InputError(f"{path}: scene is missing required array '{required}'")
+    if not isinstance(meta, dict):
+        raise InputError(f"{path}: meta must be a JSON object, got {type(meta).__name__}")
     meta.setdefault("name", path.stem)
     meta["file"] = str(path)  # in memory only: outputs are named after the file the user gave
     return Scene(meta=meta, **arrays)

@@ -182,7 +182,9 @@ def sensor(
         (...) captures in [0, 1], same shape as ``signal``.
     """
     if noise is not None:
-        std = torch.sqrt(noise.shot * signal.clamp_min(0.0) + noise.read_std**2)
+        # The floor keeps the square root's gradient finite where the variance is zero (no read
+        # noise at zero signal, or a noise model scaled to 0).
+        std = torch.sqrt(noise.shot * signal.clamp_min(0.0) + noise.read_std**2 + torch.finfo(signal.dtype).tiny)
         z = torch.randn(signal.shape, generator=generator, dtype=signal.dtype)
         signal = signal + std * z
     captured = _SaturatingClip.apply(signal, clip_sharpness)
@@ -230,12 +232,18 @@ def simulate(
         Capture with (M, N, 3) captures, (M, K, 3) effective emission and the exposure used.
     """
     check_array("patterns", patterns, ("M", rig.rows, rig.cols, 3), value_range=(0.0, 1.0))
+    patterns = torch.as_tensor(patterns)
     rig.check_lights(transport.num_lights)
     emitted = display_emission(patterns, rig.backlight_flat(patterns.dtype), rig.gamma, rig.scale)
     radiance = noise_free_radiance(emitted, transport)
     if exposure is None:
         exposure = rig.exposure if rig.exposure is not None else "auto"
-    exposure = auto_exposure(radiance) if exposure == "auto" else float(exposure)
+    if exposure != "auto":
+        try:
+            exposure = float(exposure)
+        except (TypeError, ValueError):
+            raise InputError(f"exposure must be a positive number or 'auto', got {exposure!r}") from None
+    exposure = auto_exposure(radiance) if exposure == "auto" else exposure
     if not exposure > 0 or not np.isfinite(exposure):
         raise InputError(f"exposure must be a positive number or 'auto', got {exposure}")
     noise_model = rig.noise if noise == "rig" else noise

@@ -116,14 +116,17 @@ def test_layout_detection(basic_folder, pms_folder, tmp_path):
 def test_basic_layout_olat_order_black_level_and_geometry(basic_folder, rig):
     scene = load_dir_object(basic_folder, rig)
     assert scene.olat.shape == (NUM_FILES, HEIGHT, WIDTH, 3) and scene.olat.dtype == np.float32
+    # Each light's image minus black is divided by its emission step (1 + B)^gamma - B^gamma.
+    backlight = rig.backlight.reshape(-1)
+    step = (1 + backlight) ** rig.gamma - backlight**rig.gamma
     for file_index in range(NUM_FILES):
         row, col = divmod(file_index, 16)
         light = row * 16 + (15 - col)
-        expected_red = (file_index + 1) / 255.0  # black level subtracted
+        expected_red = (file_index + 1) / 255.0 / step[light]  # black level subtracted
         assert np.allclose(scene.olat[light, ..., 0], expected_red, atol=1e-7), file_index
     v, u = np.meshgrid(np.arange(HEIGHT), np.arange(WIDTH), indexing="ij")
-    assert np.allclose(scene.olat[5, ..., 1], (10 + v * WIDTH + u) / 255.0, atol=1e-7)
-    assert np.allclose(scene.olat[..., 2], 200 / 255.0, atol=1e-7)
+    assert np.allclose(scene.olat[5, ..., 1], (10 + v * WIDTH + u) / 255.0 / step[5], atol=1e-7)
+    assert np.allclose(scene.olat[..., 2], 200 / 255.0 / step[:, None, None], atol=1e-7)
     assert np.array_equal(scene.mask, _object_mask())
     assert np.allclose(scene.normal[scene.mask], _opencv_normals()[scene.mask], atol=1e-6)
     assert not scene.normal[~scene.mask].any()

@@ -127,3 +127,44 @@ def test_bad_inputs_raise_clear_errors(tiny_rig):
     other_rig = tiny_rig.replace(light_positions=tiny_rig.light_positions[:1], backlight=tiny_rig.backlight[:1])
     with pytest.raises(InputError, match="lights"):
         simulate(torch.rand(1, 1, 3, 3), transport, other_rig)
+
+
+def test_review_fixes_for_sensor_rig_and_files(tiny_rig, tmp_path):
+    """Zero noise variance keeps finite gradients; bad rig values, numpy patterns, fitted falloffs
+    and written file permissions behave."""
+    import dataclasses
+    import os
+
+    from capture_sim.atomic import write_text
+    from capture_sim.render import render_olat
+    from capture_sim.rig import Falloff, rig_from_dict
+
+    signal = torch.tensor([0.0, 0.3, 0.9], dtype=torch.float64, requires_grad=True)
+    for model in (NoiseModel().scaled(0.0), NoiseModel(shot=1e-4, read_std=0.0)):
+        sensor(signal, model, None, torch.Generator().manual_seed(0)).sum().backward()
+        assert torch.isfinite(signal.grad).all()
+        signal.grad = None
+    for bad in (dict(shot=-1e-4), dict(read_std=float("nan"))):
+        with pytest.raises(InputError):
+            NoiseModel(**bad)
+    with pytest.raises(InputError):
+        dataclasses.replace(tiny_rig, gamma=float("nan"))
+    with pytest.raises(InputError):
+        rig_from_dict({"camera": {"fx": 1.0, "fy": 1.0, "cx": 0.0, "cy": 0.0, "height": 4, "width": 4},
+                       "display": {"panel": {"rows": 2, "cols": 2}}, "exposure": "Auto"}, "bad")
+    stack = _random_stack(tiny_rig)
+    transport = light_transport(stack)
+    patterns = np.full((2, tiny_rig.rows, tiny_rig.cols, 3), 0.5)
+    assert torch.isfinite(simulate(patterns, transport, tiny_rig, exposure=1.0, noise=None).captures).all()
+    with pytest.raises(InputError):
+        simulate(torch.as_tensor(patterns), transport, tiny_rig, exposure="Auto")
+    points = torch.tensor([[0.0, 0.0, 0.5]])
+    lights = torch.tensor([[0.1, 0.0, 0.2]])  # 0.32 m away
+    with pytest.raises(InputError):  # the reference rig's fitted falloff is negative below 0.608 m
+        render_olat(points, torch.tensor([[0.0, 0.0, -1.0]]), lights, torch.ones(1, 1), torch.ones(1, 3), torch.zeros(1), torch.ones(1), Falloff("fitted", -5.4580, 14.7449))
+    umask = os.umask(0o022)
+    try:
+        write_text(tmp_path / "a.txt", "x")
+        assert (os.stat(tmp_path / "a.txt").st_mode & 0o777) == 0o644
+    finally:
+        os.umask(umask)

@@ -336,3 +336,28 @@ def test_write_scene_set_writes_loadable_scenes_and_index(rig, tmp_path):
     assert scene.diffuse is not None and scene.normal is not None and scene.depth is not None
     assert sorted(p.name for p in (tmp_path / "set" / "train").iterdir()) == sorted(
         f"{e['name']}.npz" for e in index["splits"]["train"])
+
+
+def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tmp_path):
+    import dataclasses
+    import json
+
+    from capture_sim.errors import InputError
+    from capture_sim.scene import save_scene, validate_scene
+
+    scene = synthesize_scene("sphere", "lambertian", load_rig(), height=16, width=20, seed=0)
+    validate_scene(scene)
+    with pytest.raises(InputError, match="face away"):
+        validate_scene(dataclasses.replace(scene, normal=-scene.normal))
+    with pytest.raises(InputError, match="unit"):
+        validate_scene(dataclasses.replace(scene, normal=2 * scene.normal))
+    with pytest.raises(InputError, match="K_cam"):
+        validate_scene(dataclasses.replace(scene, K_cam=np.zeros((3, 3))))
+    path = tmp_path / "s.npz"
+    save_scene(scene, path)
+    with np.load(path) as data:
+        arrays = dict(data)
+    arrays["meta"] = np.array(json.dumps([1, 2]))
+    np.savez(path, **arrays)
+    with pytest.raises(InputError, match="meta"):
+        load_scene(path)
