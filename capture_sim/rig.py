@@ -155,6 +155,9 @@ class Rig:
             raise InputError(f"rig {self.name}: exposure must be positive or auto")
         if self.bit_depth is not None and not 1 <= self.bit_depth <= 24:
             raise InputError(f"rig {self.name}: bit_depth must be 1..24 or none")
+        panel = self.panel_pixels
+        if len(panel) != 2 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in panel):
+            raise InputError(f"rig {self.name}: panel_pixels must be two positive whole numbers (height, width), got {panel!r}")
 
     @property
     def rows(self) -> int:

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from capture_sim.atomic import write_bytes, write_json
-from capture_sim.errors import InputError
+from capture_sim.errors import InputError, check_array
 from capture_sim.rig import Rig
 from patterns.contact_sheet import save_contact_sheet
 from patterns.io import check_patterns_match_rig, validate_patterns
@@ -52,6 +52,14 @@ def columns_mirrored(rig: Rig) -> bool:
     return bool(x[:, -1].mean() > x[:, 0].mean())
 
 
+def _panel_size(panel_pixels) -> tuple[int, int]:
+    """(height, width) of a display in pixels, or ``InputError`` unless two positive whole numbers."""
+    values = list(panel_pixels) if isinstance(panel_pixels, (list, tuple, np.ndarray)) else []
+    if len(values) != 2 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in values):
+        raise InputError(f"panel_pixels must be two positive whole numbers (height, width), got {panel_pixels!r}")
+    return int(values[0]), int(values[1])
+
+
 def render_frame(
     pattern: np.ndarray, panel_pixels: tuple[int, int], bit_depth: int = 8, mirrored: bool = True
 ) -> np.ndarray:
@@ -68,8 +76,9 @@ def render_frame(
     """
     if bit_depth not in _BIT_DEPTHS:
         raise InputError(f"bit depth must be 8 or 16, got {bit_depth}")
+    check_array("pattern", pattern, ("R", "C", 3), value_range=(0.0, 1.0))
     rows, cols, _ = pattern.shape
-    height, width = panel_pixels
+    height, width = _panel_size(panel_pixels)
     row_sizes = np.diff(superpixel_boundaries(rows, height))
     col_sizes = np.diff(superpixel_boundaries(cols, width))
     levels = 2**bit_depth - 1
@@ -119,13 +128,17 @@ def export_frames(
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"export folder is a file: {out_dir}")
-    height, width = (int(v) for v in rig.panel_pixels)
+    height, width = _panel_size(rig.panel_pixels)
     row_bounds = superpixel_boundaries(rig.rows, height)
     col_bounds = superpixel_boundaries(rig.cols, width)
     mirrored = columns_mirrored(rig)
     out_dir.mkdir(parents=True, exist_ok=True)
-    # A stale manifest would describe frames about to be replaced; without it the folder reads as incomplete.
+    # A stale manifest would describe frames about to be replaced; without it the folder reads as
+    # incomplete. Frames of an earlier export (more patterns, or OLAT frames) would be played too.
     (out_dir / MANIFEST_NAME).unlink(missing_ok=True)
+    for pattern_glob in ("pattern_*.png", "olat_*.png", "black.png", "white.png"):
+        for stale in out_dir.glob(pattern_glob):
+            stale.unlink()
 
     frames = []
 
@@ -217,7 +230,10 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
     if manifest["columns_mirrored"]:
         recovered = recovered[:, :, ::-1]
     patterns = validate_patterns(recovered, f"{frames_dir}: recovered patterns")
-    listed = np.asarray(manifest["patterns"], dtype=np.float64)
+    try:
+        listed = np.asarray(manifest["patterns"], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{frames_dir}: manifest patterns are not an M x R x C x 3 array of numbers") from None
     if listed.shape != patterns.shape or np.abs(listed - patterns).max() > 0.5 / levels + 1e-6:
         raise InputError(f"{frames_dir}: the frames do not show the pattern values listed in the manifest")
     if rig is not None:
@@ -239,9 +255,11 @@ def _read_manifest(frames_dir: Path) -> dict:
         raise InputError(f"{path}: manifest is missing {', '.join(missing)}")
     if manifest["format"] != FORMAT:
         raise InputError(f"{path}: unknown manifest format {manifest['format']!r} (expected {FORMAT})")
-    sizes = [manifest["rows"], manifest["cols"], manifest["num_patterns"], *manifest["panel_pixels"]]
-    if len(sizes) != 5 or not all(isinstance(v, int) and v >= 1 for v in sizes) or not isinstance(manifest["frames"], list):
-        raise InputError(f"{path}: manifest rows, cols, num_patterns, panel_pixels or frames are malformed")
+    panel = manifest["panel_pixels"]
+    sizes = [manifest["rows"], manifest["cols"], manifest["num_patterns"], *(panel if isinstance(panel, list) else [None])]
+    whole = all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in sizes)
+    if len(sizes) != 5 or not whole or not isinstance(manifest["frames"], list) or not isinstance(manifest["columns_mirrored"], bool):
+        raise InputError(f"{path}: manifest rows, cols, num_patterns, panel_pixels, columns_mirrored or frames are malformed")
     for frame in manifest["frames"]:
         if not isinstance(frame, dict) or not isinstance(frame.get("file"), str) or Path(frame["file"]).name != frame["file"]:
             raise InputError(f"{path}: every manifest frame needs a plain file name, got {frame!r}")

@@ -401,8 +401,10 @@ class MonoGradient(Family):
 
     Even M: M/2 axes evenly spaced over 180 deg, each giving a pair of opposite ramps, starting
     vertical (M = 4: bright towards -y, +y, -x, +x, as published). Odd M: M directions evenly
-    spaced around the circle, starting at -y. M = 1..12. Ramp values: the superpixel nearest the
-    bright end gets ``hi`` and the far end lo + (hi - lo)/N (N cells along the ramp), as published.
+    spaced around the circle, starting at -y. M = 1..12. Ramp values along an axis-aligned ramp:
+    the superpixel nearest the bright end gets ``hi`` and the far end lo + (hi - lo)/N (N cells
+    along the ramp), as published; diagonal ramps stop slightly short of ``hi`` (about 0.99 at the
+    default hi = 1), because their length spans the grid's bounding box, not its cell centres.
     Parameters: lo, hi and per pattern m ``angle_deg_m`` (bright direction), ``offset_m`` (cells
     added to the projection; positive brightens) and ``length_m`` (cells from 0 to 1).
     """

@@ -3,13 +3,26 @@
 Learning optimises logits z with P = sigmoid(z), which keeps every set value in (0, 1) without
 projection. Exact 0 or 1 values (OLAT, binary halves, the default lo = 0 / hi = 1) would map to
 infinite logits whose gradient sigmoid'(z) is zero, so an optimiser could never move them (the
-published code had this problem); they are first clamped to [eps, 1 - eps].
+published code had this problem); they are first clamped to [eps, 1 - eps]. During learning the
+logits are kept within +-``LOGIT_LIMIT`` (``keep_movable``): in float32 sigmoid'(z) is exactly 0
+from |z| of about 17, where a value would freeze again.
 """
 from __future__ import annotations
 
 import torch
 
 from capture_sim.errors import InputError, check_array
+
+
+LOGIT_LIMIT = 12.0
+"""Largest |logit| kept during learning: sigmoid(12) = 1 - 6e-6, and sigmoid'(12) = 6e-6 is still
+a usable gradient for Adam (which rescales it), unlike the exact 0 of float32 beyond about 17."""
+
+
+def keep_movable(logits: torch.Tensor) -> None:
+    """Clamp learnable logits to +-LOGIT_LIMIT in place (call after each optimiser step)."""
+    with torch.no_grad():
+        logits.clamp_(-LOGIT_LIMIT, LOGIT_LIMIT)
 
 
 def patterns_to_logits(patterns: torch.Tensor, eps: float = 1e-3) -> torch.Tensor:
@@ -21,7 +34,7 @@ def patterns_to_logits(patterns: torch.Tensor, eps: float = 1e-3) -> torch.Tenso
 
     Returns:
         Logits z = log(p / (1 - p)) of the clamped values, same shape; float32 unless the input is
-        a float64 tensor.
+        float64 (tensor or array).
 
     Example:
         >>> patterns_to_logits(torch.tensor([0.0, 0.5, 1.0]))

@@ -264,7 +264,7 @@ class EmissionPlan:
             self.light_index = used
             self.gain = None
             # (K', 3M): column (m, c) holds E[m, :, c].
-            self.matrix = emission[:, used].permute(1, 0, 2).reshape(used.numel(), -1)
+            self.matrix = emission[:, used].permute(1, 0, 2).reshape(used.numel(), emission.shape[0] * 3)
 
     def contract(self, irradiance: torch.Tensor, specular_radiance: torch.Tensor | None, diffuse_albedo: torch.Tensor) -> torch.Tensor:
         """Images (M, B, 3) from shading of the plan's lights.
@@ -408,7 +408,8 @@ class FitConfig:
     iterations: int = 400
     """Adam steps."""
     batch_pixels: int = 8192
-    """Pixels per step (random batches that cover every pixel once per epoch); all when fewer."""
+    """Pixels per step (random batches drawn without replacement from a shuffled order, reshuffled
+    when fewer than a batch remain, so up to batch_pixels - 1 pixels sit out an epoch); all when fewer."""
     normal_lr: float = 0.03
     """Adam learning rate of the unnormalised normal vectors (unit length at the start)."""
     weight_lr: float = 0.1
@@ -417,7 +418,8 @@ class FitConfig:
     """Adam learning rate of the log diffuse albedos and the roughness logits."""
     specular_lr: float = 0.1
     """Adam learning rate of the log specular albedos: high enough that a lobe the scene does not
-    have (rho_s starts at 0.5) can fade by orders of magnitude within a short fit."""
+    have can fade by orders of magnitude within a short fit (rho_s starts at its least-squares
+    value with ``least_squares_init``, else at 0.5)."""
     final_lr_fraction: float = 0.05
     """Learning rates decay exponentially to this fraction of their start by the last step."""
     tv_weight: float = 1e-3
@@ -509,7 +511,8 @@ def olat_least_squares(captures, plan: EmissionPlan, points, lights, falloff, sh
     channel-mean of y is fitted by least squares for g = mean(a) n over equations that are lit
     (above ``shadow_threshold``: attached shadows read 0) and unsaturated; iteratively reweighted
     least squares with Cauchy weights then discounts specular highlights (large positive
-    residuals). Finally a_c = sum_m y s / sum_m s^2 with s = f (l . n)+.
+    residuals). Finally a_c = sum_m w y s / sum_m w s^2 with s = f (l . n)+ and the final weights w.
+    An equation counts as lit when at least one channel is above the threshold.
 
     Args:
         captures: (M, N, 3) captures in [0, 1].
@@ -544,7 +547,8 @@ def olat_least_squares(captures, plan: EmissionPlan, points, lights, falloff, sh
         positive_gain = gain > 0
         ratio = torch.where(positive_gain, observed / gain.clamp_min(1e-30), torch.zeros((), dtype=torch.float64))  # y, (B, M, 3)
         grey = ratio.sum(-1) / positive_gain.sum(-1).clamp_min(1)
-        usable = ((observed > shadow_threshold).all(-1) & (observed < saturation_threshold).all(-1)).double()
+        # Lit in at least one channel (a saturated red object reads 0 in green and blue), none saturated.
+        usable = ((observed > shadow_threshold).any(-1) & (observed < saturation_threshold).all(-1)).double()
         weight = usable
         solution = torch.zeros((observed.shape[0], 3), dtype=torch.float64)
         for step in range(reweight_steps + 1):
@@ -561,7 +565,10 @@ def olat_least_squares(captures, plan: EmissionPlan, points, lights, falloff, sh
         length = solution.norm(dim=-1)
         unit = solution / length[:, None].clamp_min(1e-30)
         shading = (lighting * unit[:, None]).sum(-1).clamp_min(0.0) * usable  # (B, M)
-        channel_albedo = (ratio * shading[..., None]).sum(1) / shading.square().sum(1)[:, None].clamp_min(1e-30)
+        # The final IRLS weights keep specular highlights out of the per-channel albedo too (it
+        # seeds the clustering of materials).
+        weighted_shading = weight * shading
+        channel_albedo = (ratio * weighted_shading[..., None]).sum(1) / (weighted_shading * shading).sum(1)[:, None].clamp_min(1e-30)
         good = (usable.sum(-1) >= 3) & (length > 0) & torch.isfinite(unit).all(-1)
         normal[block] = torch.where(good[:, None], unit, torch.zeros((), dtype=torch.float64))
         albedo[block] = torch.where(good[:, None], channel_albedo.clamp_min(0.0), torch.zeros((), dtype=torch.float64))
@@ -989,6 +996,13 @@ def _check_fit_inputs(captures, emission, points, lights, pixel_index, height, w
     check_array("pixel_index", pixel_index, (captures.shape[1],))
     if captures.shape[1] == 0:
         raise InputError("captures hold no pixels")
+    if captures.shape[0] == 0 or not bool((torch.as_tensor(emission) > 0).any()):
+        raise InputError("the inverse renderer needs at least one pattern with some emitted light")
+    if not (isinstance(captures, torch.Tensor) and captures.is_floating_point()):
+        raise InputError("captures must be a floating-point torch tensor")
+    index = torch.as_tensor(pixel_index)
+    if index.is_floating_point() or index.dtype == torch.bool or index.unique().numel() != index.numel():
+        raise InputError("pixel_index must hold distinct integer pixel indices")
     if int(pixel_index.min()) < 0 or int(pixel_index.max()) >= height * width:
         raise InputError(f"pixel_index must lie in [0, {height * width}) for a {height} x {width} image")
 

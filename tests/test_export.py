@@ -185,3 +185,25 @@ def test_import_refuses_frame_names_outside_the_folder(tmp_path, small_rig):
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(InputError, match="plain file name"):
         import_frames(tmp_path)
+
+
+def test_reexport_removes_stale_frames_and_bad_inputs_are_refused(tmp_path, small_rig):
+    import dataclasses
+
+    out = tmp_path / "frames"
+    export_frames(_patterns(small_rig, 3), small_rig, out, include_olat=True)
+    export_frames(_patterns(small_rig, 1), small_rig, out)
+    assert sorted(p.name for p in out.glob("*.png")) == ["contact_sheet.png", "pattern_000.png"]
+    import_frames(out)
+    with pytest.raises(InputError):
+        render_frame(np.full((small_rig.rows, small_rig.cols, 3), 1.5), (20, 40))
+    with pytest.raises(InputError):
+        render_frame(np.full((small_rig.rows, small_rig.cols), 0.5), (20, 40))
+    with pytest.raises(InputError):
+        dataclasses.replace(small_rig, panel_pixels=(2160,))
+    manifest = json.loads((out / "manifest.json").read_text())
+    for key, bad in (("panel_pixels", 5), ("columns_mirrored", "false"), ("rows", True), ("patterns", "abc")):
+        broken = dict(manifest, **{key: bad})
+        (out / "manifest.json").write_text(json.dumps(broken))
+        with pytest.raises(InputError):
+            import_frames(out)

@@ -240,6 +240,28 @@ def test_olat_least_squares_recovers_a_lambertian_sphere():
     torch.testing.assert_close(albedo, scene.albedo.reshape(-1, 3)[mask], rtol=1e-6, atol=1e-9)
 
 
+def test_olat_least_squares_handles_a_pure_red_object_and_bad_inputs_are_refused():
+    """An object dark in two channels is still lit in the third; degenerate fits raise InputError."""
+    scene = sphere_scene(24, 30)
+    mask = scene.mask.reshape(-1)
+    red = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    stack = scene.olat.reshape(scene.olat.shape[0], -1, 3)[:, mask] * red
+    exposure = 0.9 / float(stack.max())
+    lights = torch.arange(0, stack.shape[0], 2)
+    emission = olat_emission(lights, stack.shape[0], exposure, torch.float64)
+    points = scene.points.reshape(-1, 3)[mask]
+    normal, albedo, valid = olat_least_squares(stack[lights] * exposure, EmissionPlan(emission), points, scene.lights, Falloff())
+    truth = scene.normal.reshape(-1, 3)[mask]
+    assert bool(valid.all())
+    assert float(torch.rad2deg(torch.acos((normal * truth).sum(-1).clamp(-1, 1))).max()) < TOL["degrees"]
+    assert float(albedo[:, 1:].abs().max()) == 0.0
+    captures = (stack[lights] * exposure).float()
+    index = torch.nonzero(mask).squeeze(1)
+    for bad_emission, bad_index in ((torch.zeros_like(emission), index), (emission, index.double()), (emission, torch.cat([index[:1], index[:-1]]))):
+        with pytest.raises(InputError):
+            fit_inverse_render(captures, bad_emission.float(), points.float(), scene.lights.float(), Falloff(), bad_index, 24, 30)
+
+
 def test_cluster_albedo_separates_hues_and_is_seeded():
     generator = torch.Generator().manual_seed(8)
     colours = torch.tensor([[0.8, 0.2, 0.2], [0.2, 0.7, 0.3], [0.2, 0.3, 0.8]])

@@ -206,3 +206,16 @@ def test_joint_solve_of_scenes_equals_solving_each_scene(scene_dirs, solver):
         assert normal.shape == (draw[2].captures.shape[1], 3)
         torch.testing.assert_close(normal, alone_normal, atol=1e-6, rtol=0)
         torch.testing.assert_close(albedo, alone_albedo, atol=1e-6, rtol=1e-5)
+
+
+def test_logits_stay_movable_even_with_huge_steps(tmp_path, scene_dirs):
+    from patterns.parameterization import LOGIT_LIMIT
+
+    config = _config(scene_dirs, learning_rate=50.0, steps=3, checkpoint_every=3, val_every=0)
+    train_patterns(config, tmp_path / "big.npz", progress=False)
+    logits = torch.load(tmp_path / "big.ckpt.pt", weights_only=False)["logits"]
+    assert float(logits.abs().max()) <= LOGIT_LIMIT
+    # Every value keeps a non-zero gradient through the sigmoid.
+    values = logits.clone().requires_grad_(True)
+    torch.sigmoid(values).sum().backward()
+    assert bool((values.grad > 0).all())

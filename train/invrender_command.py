@@ -448,9 +448,9 @@ def sphere_pixels(size: int = 96, radius: float = 0.05, distance: float = 0.5) -
 
 def _brdf_spheres(path: Path, result: InverseRenderResult, rig) -> None:
     """Each basis BRDF on a sphere lit by one superpixel (upper left quadrant of the display)."""
-    points, normals, mask = sphere_pixels()
+    points, normals, mask = sphere_pixels(distance=rig.working_distance)
     light = rig.lights()[(rig.rows // 4) * rig.cols + rig.cols // 4][None].float()
-    distance = float((light[0] - torch.tensor([0.0, 0.0, 0.5])).norm())
+    distance = float((light[0] - torch.tensor([0.0, 0.0, rig.working_distance])).norm())
     # Exposure: a white Lambertian patch facing the light at the sphere's distance reads 0.8.
     exposure = 0.8 * math.pi / float(rig.falloff(torch.tensor(distance)))
     emission = torch.full((1, 1, 3), exposure)

@@ -24,7 +24,7 @@ from capture_sim.errors import InputError
 from capture_sim.rig import DEFAULT_RIG, load_rig
 from patterns.families import FAMILIES, make_patterns
 from patterns.io import check_patterns_match_rig, load_patterns, save_patterns
-from patterns.parameterization import logits_to_patterns, patterns_to_logits
+from patterns.parameterization import keep_movable, logits_to_patterns, patterns_to_logits
 from reconstruct.photometric_stereo import solve_ps
 from reconstruct.unrolled_ps import UnrolledPSConfig, solve_ps_unrolled
 from train.capture import capture_scene, scene_exposure
@@ -272,6 +272,7 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
         loss = training_loss(logits, train_scenes, config, step, ps_config)
         loss.backward()
         optimiser.step()
+        keep_movable(logits)
         scheduler.step()
         loss_value = float(loss.detach())
         done = step + 1
