@@ -255,12 +255,13 @@ def alternation(albedo: torch.Tensor, moments: Moments, damping: float) -> tuple
 def alternate(albedo: torch.Tensor, moments: Moments, damping: float, tolerance_deg: float, max_alternations: int):
     """Iterate Phi for fixed moments until the normals stop moving.
 
-    A pixel stops when its normal moves by at most ``tolerance_deg``, or when a move no larger
-    than the rounding level sqrt(eps) of the dtype (about 0.02 deg in float32; below the default
-    tolerance in float64) fails to shrink: that is rounding noise of an ill-conditioned float32
-    solve, which further steps cannot remove. Both count as converged. Larger moves that do not
-    shrink (slow or non-monotone progress) keep iterating up to ``max_alternations``. Only pixels
-    still moving are iterated.
+    A pixel stops when its normal moves by at most ``tolerance_deg`` (converged), or when a move
+    fails to shrink. A non-shrinking move no larger than the rounding level sqrt(eps) of the dtype
+    (about 0.02 deg in float32; below the default tolerance in float64) is rounding noise of an
+    ill-conditioned float32 solve that further steps cannot remove: converged. A larger one means
+    progress too slow to finish (nearly rank-deficient systems, where the alternation would run to
+    ``max_alternations`` without getting anywhere useful): the pixel stops, not converged, so
+    callers flag it and the shadow search may restart it. Only pixels still moving are iterated.
 
     Args:
         albedo: (3, N) starting albedo.
@@ -288,9 +289,11 @@ def alternate(albedo: torch.Tensor, moments: Moments, damping: float, tolerance_
             break
         new_albedo, new_normal = alternation(albedo[:, active], moments.subset(active), damping)
         move = (new_normal - normal[:, active]).square().sum(0).sqrt()
-        done = (move <= tolerance) | ((move >= previous_move[active]) & (move <= rounding))
+        stalled = move >= previous_move[active]
+        done = (move <= tolerance) | stalled
+        finished = (move <= tolerance) | (stalled & (move <= rounding))
         albedo[:, active], normal[:, active], previous_move[active] = new_albedo, new_normal, move
-        converged[active[done]] = True
+        converged[active[finished]] = True
         active = active[~done]
     return albedo, normal, converged
 
