@@ -5,7 +5,7 @@ projection. Exact 0 or 1 values (OLAT, binary halves, the default lo = 0 / hi = 
 infinite logits whose gradient sigmoid'(z) is zero, so an optimiser could never move them (the
 published code had this problem); they are first clamped to [eps, 1 - eps]. During learning the
 logits are kept within +-``LOGIT_LIMIT`` (``keep_movable``): in float32 sigmoid'(z) is exactly 0
-from |z| of about 17, where a value would freeze again.
+from |z| = 17, where a value would freeze again.
 """
 from __future__ import annotations
 
@@ -14,9 +14,10 @@ import torch
 from capture_sim.errors import InputError, check_array
 
 
-LOGIT_LIMIT = 12.0
-"""Largest |logit| kept during learning: sigmoid(12) = 1 - 6e-6, and sigmoid'(12) = 6e-6 is still
-a usable gradient for Adam (which rescales it), unlike the exact 0 of float32 beyond about 17."""
+LOGIT_LIMIT = 16.0
+"""Largest |logit| kept during learning: the largest whole number whose float32 sigmoid gradient
+is not 0 (sigmoid'(16) = 1.2e-7, which Adam rescales to a normal step; sigmoid(17) rounds to 1 and
+its gradient to exactly 0). Values are unchanged: sigmoid(16) is the largest float32 below 1."""
 
 
 def keep_movable(logits: torch.Tensor) -> None:
