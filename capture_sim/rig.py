@@ -155,9 +155,7 @@ class Rig:
             raise InputError(f"rig {self.name}: exposure must be positive or auto")
         if self.bit_depth is not None and not 1 <= self.bit_depth <= 24:
             raise InputError(f"rig {self.name}: bit_depth must be 1..24 or none")
-        panel = self.panel_pixels
-        if len(panel) != 2 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in panel):
-            raise InputError(f"rig {self.name}: panel_pixels must be two positive whole numbers (height, width), got {panel!r}")
+        panel_size(self.panel_pixels, f"rig {self.name}: panel_pixels")
 
     @property
     def rows(self) -> int:
@@ -246,6 +244,14 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
         raise InputError(f"rig {default_name}: missing key {missing}") from None
     except (TypeError, ValueError) as err:
         raise InputError(f"rig {default_name}: {err}") from None
+
+
+def panel_size(panel_pixels, name: str = "panel_pixels") -> tuple[int, int]:
+    """(height, width) of a display in pixels; ``InputError`` unless two positive whole numbers."""
+    values = list(panel_pixels) if isinstance(panel_pixels, (list, tuple, np.ndarray)) else []
+    if len(values) != 2 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in values):
+        raise InputError(f"{name} must be two positive whole numbers (height, width), got {panel_pixels!r}")
+    return int(values[0]), int(values[1])
 
 
 def _number(name: str, value) -> float:

@@ -24,7 +24,6 @@ from tqdm import tqdm
 
 from capture_sim.atomic import write_json
 from capture_sim.errors import InputError
-from capture_sim.geometry import light_geometry
 from capture_sim.materials import MATERIALS, make_material
 from capture_sim.render import render_olat
 from capture_sim.rig import Rig
@@ -91,8 +90,6 @@ def synthesize_scene(
     specular = np.zeros((num_lights, height * width, 3), dtype=np.float32)
     for start in range(0, pixel_index.numel(), _CHUNK_PIXELS):
         chunk = slice(start, start + _CHUNK_PIXELS)
-        _, distance = light_geometry(points[chunk], lights)
-        rig.falloff.check(distance)
         visibility = shadow_visibility(surface, points[chunk], normals[chunk], lights) if cast_shadows else None
         diffuse_chunk, specular_chunk = render_olat(
             points[chunk], normals[chunk], lights, weights[chunk],

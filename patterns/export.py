@@ -23,7 +23,7 @@ import numpy as np
 
 from capture_sim.atomic import write_bytes, write_json
 from capture_sim.errors import InputError, check_array
-from capture_sim.rig import Rig
+from capture_sim.rig import Rig, panel_size
 from patterns.contact_sheet import save_contact_sheet
 from patterns.io import check_patterns_match_rig, validate_patterns
 from patterns.png import encode_png, read_png
@@ -52,14 +52,6 @@ def columns_mirrored(rig: Rig) -> bool:
     return bool(x[:, -1].mean() > x[:, 0].mean())
 
 
-def _panel_size(panel_pixels) -> tuple[int, int]:
-    """(height, width) of a display in pixels, or ``InputError`` unless two positive whole numbers."""
-    values = list(panel_pixels) if isinstance(panel_pixels, (list, tuple, np.ndarray)) else []
-    if len(values) != 2 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in values):
-        raise InputError(f"panel_pixels must be two positive whole numbers (height, width), got {panel_pixels!r}")
-    return int(values[0]), int(values[1])
-
-
 def render_frame(
     pattern: np.ndarray, panel_pixels: tuple[int, int], bit_depth: int = 8, mirrored: bool = True
 ) -> np.ndarray:
@@ -78,7 +70,7 @@ def render_frame(
         raise InputError(f"bit depth must be 8 or 16, got {bit_depth}")
     check_array("pattern", pattern, ("R", "C", 3), value_range=(0.0, 1.0))
     rows, cols, _ = pattern.shape
-    height, width = _panel_size(panel_pixels)
+    height, width = panel_size(panel_pixels)
     row_sizes = np.diff(superpixel_boundaries(rows, height))
     col_sizes = np.diff(superpixel_boundaries(cols, width))
     levels = 2**bit_depth - 1
@@ -128,7 +120,7 @@ def export_frames(
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"export folder is a file: {out_dir}")
-    height, width = _panel_size(rig.panel_pixels)
+    height, width = (int(v) for v in rig.panel_pixels)  # checked when the rig was made
     row_bounds = superpixel_boundaries(rig.rows, height)
     col_bounds = superpixel_boundaries(rig.cols, width)
     mirrored = columns_mirrored(rig)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import torch
 
 from capture_sim.errors import check_array
+from capture_sim.geometry import light_geometry
 
 FORESHORTENING_FLOOR = 1e-8
 """The published albedo step clamps g_k . n to at least this instead of zero."""
@@ -30,9 +31,8 @@ def incident_field(points: torch.Tensor, lights: torch.Tensor, falloff) -> torch
         lights: (K, 3) superpixel positions, metres, camera frame.
         falloff: callable distance (metres) -> falloff factor.
     """
-    offset = lights[None, :, :] - points[:, None, :]
-    distance = offset.norm(dim=-1, keepdim=True).clamp_min(1e-3)
-    return offset * (falloff(distance) / distance)
+    directions, distance = light_geometry(points, lights)
+    return directions * falloff(distance.clamp_min(1e-3))[..., None]
 
 
 def solve_published(captures: torch.Tensor, emission: torch.Tensor, incident: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -37,6 +37,7 @@ from train.evaluate import EvalSettings, evaluate_scene
 from reconstruct.photometric_stereo import PSConfig
 from train.learn import TrainConfig, train_patterns
 from train.search import SearchConfig, prepare_scenes, run_search
+from train.scene_pixels import fixed_pixel_subsets
 
 DEFAULT_EXPOSURE_MS = 440.0
 """Exposure time per image (ms) when the rig's TOML gives no ``camera.exposure_ms``."""
@@ -275,10 +276,7 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
         for key in ("train_scenes", "test_scenes"):
             if key in values:
                 values[key] = [_resolve(path, root) for path in values[key]]
-    config = config_from_dict(CompareConfig, values, source=source)
-    if config.learned_counts is not None:  # an optional tuple is not converted by config_from_dict
-        config = dataclasses.replace(config, learned_counts=tuple(config.learned_counts))
-    return config
+    return config_from_dict(CompareConfig, values, source=source)
 
 
 def load_compare_config(path: str | Path, overrides: dict | None = None) -> CompareConfig:
@@ -437,23 +435,19 @@ def collect_methods(config: CompareConfig, rig, pattern_dir: Path, progress: boo
         start = time.perf_counter()
         methods.append(learned_method(config, count, config.seeds_for(count)[0], pattern_dir, progress, rerender=True, logdir=logdir))
         timings["learning_seconds"] += time.perf_counter() - start
-    for run in config.search:
-        if run.num_patterns not in config.pattern_counts:
-            skipped.append({"method": run.name, "M": run.num_patterns, "reason": "M is not in pattern_counts"})
-            continue
+    for run in config.search:  # CompareConfig refuses runs whose M is not in pattern_counts
         start = time.perf_counter()
         methods.append(searched_method(config, run, pattern_dir, progress, logdir))
         timings["search_seconds"] += time.perf_counter() - start
     for item in config.external:
-        patterns, meta = load_patterns(item.path)
+        patterns, _ = load_patterns(item.path)
         count = patterns.shape[0]
         if patterns.shape[1:3] != (rig.rows, rig.cols):
             skipped.append({"method": item.name, "M": count, "reason": f"patterns are {patterns.shape[1]} x {patterns.shape[2]}, the rig is {rig.rows} x {rig.cols}"})
         elif count not in config.pattern_counts:
             skipped.append({"method": item.name, "M": count, "reason": "M is not in pattern_counts"})
         else:
-            methods.append(Method(f"external_{item.name}", "external", f"external:{item.name}", item.name, count, patterns, item.path,
-                                  info={"meta": meta}))
+            methods.append(Method(f"external_{item.name}", "external", f"external:{item.name}", item.name, count, patterns, item.path))
     if config.include_olat_woodham:
         methods.append(Method("olat_woodham", "reference", "olat_woodham", f"OLAT + Woodham (M = {rig.num_lights})", rig.num_lights, "olat"))
     return methods, skipped, timings
@@ -487,14 +481,7 @@ def summarise(scene_metrics: list[dict], num_patterns: int, exposure_ms: float) 
 def evaluation_columns(scenes, pixels_per_scene: int, seed: int) -> list:
     """Per scene: sorted (P,) indices of a fixed random subset of ``pixels_per_scene`` masked
     pixels (seeded by ``seed`` and the scene index), or None to measure every masked pixel."""
-    columns = []
-    for index, pixels in enumerate(scenes):
-        if pixels_per_scene and pixels.num_pixels > pixels_per_scene:
-            chooser = torch.Generator().manual_seed(seed * 1000 + index + 500)
-            columns.append(torch.randperm(pixels.num_pixels, generator=chooser)[:pixels_per_scene].sort().values)
-        else:
-            columns.append(None)
-    return columns
+    return fixed_pixel_subsets(scenes, pixels_per_scene, seed, offset=500)
 
 
 def _pattern_key(patterns) -> str:
@@ -573,7 +560,7 @@ def method_record(method: Method, out_dir: Path) -> dict:
             pattern_file = str(Path(pattern_file).resolve().relative_to(out_dir.resolve()))
         except ValueError:
             pass
-    info = {key: value for key, value in method.info.items() if key != "meta"}
+    info = dict(method.info)
     return {"id": method.id, "kind": method.kind, "series": method.series, "label": method.label, "M": method.num_patterns,
             "seed": method.seed, "pattern_file": pattern_file, "cost_seconds": method.cost_seconds, "info": info,
             "evaluations": method.evaluations}

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import types
 import typing
 from pathlib import Path
 
@@ -29,7 +30,13 @@ _SCALARS = {int: (int,), float: (int, float), str: (str,), bool: (bool,)}
 
 
 def _checked_value(key: str, value, hint, source: str):
-    """``value`` converted to the field's type hint (lists become tuples), or ``InputError``."""
+    """``value`` converted to the field's type hint (lists become tuples), or ``InputError``.
+    An optional hint (``X | None``) takes None as is and checks other values against X."""
+    options = typing.get_args(hint) if isinstance(hint, types.UnionType) else ()
+    if len(options) == 2 and type(None) in options:
+        if value is None:
+            return None
+        hint = next(option for option in options if option is not type(None))
     if typing.get_origin(hint) is tuple:
         if not isinstance(value, (list, tuple)):
             raise InputError(f"{source}: {key} must be a list, got {value!r}")

@@ -738,8 +738,7 @@ def _bench_acceptance(seed: int) -> dict:
         sources = (("olat", "olat", "olat"), ("learned_m4", str(learned), "learned here (displex train defaults, M = 4, seed " + str(seed) + ")"),
                    ("published_learned_m4", str(PUBLISHED_M4_PATTERNS), PUBLISHED_M4_PATTERNS.name))
         for name, patterns, label in sources:
-            output = run_invrender(InvRenderConfig(scene=path, patterns=patterns, basis="3", noise="off", seed=seed,
-                                                   threads=torch.get_num_threads()))
+            output = run_invrender(InvRenderConfig(scene=path, patterns=patterns, basis="3", noise="off", seed=seed))
             runs[name] = {key: output[key] for key in ("psnr", "ssim", "mae", "seconds", "cpu_seconds", "J")}
             runs[name]["patterns"] = label
     return {"scene": "sphere, svbrdf (3 GGX bases), 128 x 153, noise off, seed " + str(seed + 1), "iterations": InvRenderConfig.iterations,

@@ -31,8 +31,8 @@ _KIND_ORDER = {"learned": 0, "rerender": 1, "search": 2, "external": 3, "heurist
 _KIND_STYLE = {
     "learned": dict(color="tab:red", marker="o", linewidth=2.5),
     "rerender": dict(color="darkorange", marker="P", linewidth=2.0, linestyle="--"),
-    "search": dict(color="tab:purple", marker="D", linewidth=1.5),
-    "external": dict(color="tab:brown", marker="s", linewidth=1.5),
+    "search": dict(marker="D", linewidth=1.5),  # colours per series: _OTHER_COLOURS
+    "external": dict(marker="s", linewidth=1.5),
     "heuristic": dict(marker=".", linewidth=1.0, alpha=0.8),
     "reference": dict(color="black", marker="*", linewidth=1.0),
 }

@@ -116,3 +116,17 @@ def shuffle_pixels(pixels: ScenePixels, window: int, generator: torch.Generator)
     scene = ScenePixels(pixels.name, pixels.rig, transport, points, normal, pixels.mask)
     reach = light_reach(points, pixels.lights(), pixels.rig.falloff)
     return ShuffledPixels(scene, reach, window, pixels.num_pixels)
+
+
+def fixed_pixel_subsets(scenes: list[ScenePixels], pixels_per_scene: int, seed: int, offset: int = 0) -> list:
+    """Per scene: sorted (P,) indices of a fixed random subset of ``pixels_per_scene`` masked pixels
+    (generator seeded by ``seed * 1000 + scene index + offset``), or None to use every pixel
+    (``pixels_per_scene`` 0, or a scene no larger than it)."""
+    columns = []
+    for index, pixels in enumerate(scenes):
+        if pixels_per_scene and pixels.num_pixels > pixels_per_scene:
+            chooser = torch.Generator().manual_seed(seed * 1000 + index + offset)
+            columns.append(torch.randperm(pixels.num_pixels, generator=chooser)[:pixels_per_scene].sort().values)
+        else:
+            columns.append(None)
+    return columns

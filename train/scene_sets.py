@@ -1,8 +1,6 @@
 """Where commands get their scenes: files and folders given by the user, or the default synthetic set."""
 from __future__ import annotations
 
-from functools import lru_cache
-
 from capture_sim.rig import Rig
 from capture_sim.scene import Scene, load_scene, scene_paths
 from capture_sim.synth import default_scene_set
@@ -10,10 +8,23 @@ from capture_sim.synth import default_scene_set
 DEFAULT_SIZE = (128, 153)
 
 
-@lru_cache(maxsize=4)
+_CACHE_SIZE = 4
+_cache: dict = {}
+
+
+def _rig_key(rig: Rig) -> tuple:
+    """What the synthetic scenes depend on: rigs loaded twice from one file share their scenes."""
+    return (rig.name, rig.light_positions.tobytes(), rig.backlight.tobytes(), rig.camera, rig.falloff, rig.gamma, rig.scale,
+            rig.working_distance)
+
+
 def _default_set(rig: Rig, height: int, width: int, seed: int) -> dict:
-    # Rigs hash by identity, so one loaded rig reuses its scenes across commands of one process.
-    return default_scene_set(rig, height=height, width=width, seed=seed)
+    key = (_rig_key(rig), height, width, seed)
+    if key not in _cache:
+        if len(_cache) >= _CACHE_SIZE:
+            _cache.pop(next(iter(_cache)))  # the oldest set: a few hundred MB each
+        _cache[key] = default_scene_set(rig, height=height, width=width, seed=seed)
+    return _cache[key]
 
 
 def default_split(split: str, rig: Rig, size: tuple[int, int] = DEFAULT_SIZE, seed: int = 0) -> list[Scene]:

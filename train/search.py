@@ -43,7 +43,7 @@ from reconstruct.photometric_stereo import PSConfig, solve_ps
 from train.capture import capture_scene
 from train.config_io import config_to_dict
 from train.learn import normal_loss
-from train.scene_pixels import ScenePixels, scene_pixels
+from train.scene_pixels import ScenePixels, fixed_pixel_subsets, scene_pixels
 from train.scene_sets import resolve_scenes
 
 ALGORITHMS = ("LN_BOBYQA", "LN_COBYLA", "LN_SBPLX", "GN_CRS2_LM", "GN_ESCH", "GN_DIRECT_L", "LD_MMA", "LD_LBFGS")
@@ -337,13 +337,7 @@ class PatternObjective:
         self.family.check(num_patterns, rows, cols)
         self.num_patterns, self.rows, self.cols = num_patterns, rows, cols
         self.scenes, self.noise_scale, self.sharpness, self.seed, self.ps_config = scenes, noise_scale, sharpness, seed, ps_config
-        self.columns = []
-        for index, pixels in enumerate(scenes):
-            if pixels_per_scene and pixels.num_pixels > pixels_per_scene:
-                chooser = torch.Generator().manual_seed(seed * 1000 + index)
-                self.columns.append(torch.randperm(pixels.num_pixels, generator=chooser)[:pixels_per_scene].sort().values)
-            else:
-                self.columns.append(None)
+        self.columns = fixed_pixel_subsets(scenes, pixels_per_scene, seed)
 
     def patterns(self, vector: np.ndarray | torch.Tensor) -> torch.Tensor:
         """(M, R, C, 3) float32 patterns of a (P,) parameter vector (differentiable in a tensor)."""
