@@ -25,6 +25,7 @@ Symmetric 3x3 moments store their 6 distinct entries in the order of ``SYMMETRIC
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from capture_sim.errors import InputError
@@ -170,6 +171,71 @@ class LightField:
                 torch.mm(self.shadowed_weights(sub_rows, block_normal), lighting, out=summed[sub_start:sub_stop])
             summed = summed.T.reshape(-1, 3, 4, stop - start)
             yield start, stop, summed[:, :, :3] - self.points[rows].T[None, None] * summed[:, :, 3:]
+
+
+PLANAR_TOLERANCE_M = 1e-7
+"""Lights within this distance (metres) of their best-fitting plane are treated as coplanar."""
+
+
+def extreme_lights(lights: torch.Tensor) -> torch.Tensor:
+    """Indices of the lights at the vertices of their convex hull.
+
+    A tangent plane has every light in front of it exactly when it has these in front of it
+    (l_k . n > 0 is linear in p_k, and a linear function's minimum over the lights is attained at
+    a hull vertex), so the test whether a pixel sees every light needs only these. Lights in a
+    plane (a flat display) have their hull taken in that plane. Cached by light positions: a
+    rig's lights are fixed, and learning asks every step.
+
+    Args:
+        lights: (K, 3) superpixel positions, metres, camera frame.
+
+    Returns:
+        (E,) long indices into the lights, sorted (all K if the hull cannot be formed).
+    """
+    positions = lights.detach().double().cpu().numpy()
+    key = positions.tobytes()
+    if key not in _EXTREME_CACHE:
+        _EXTREME_CACHE[key] = _hull_vertices(positions)
+    return _EXTREME_CACHE[key]
+
+
+_EXTREME_CACHE: dict = {}
+
+
+def _hull_vertices(positions: np.ndarray) -> torch.Tensor:
+    from scipy.spatial import ConvexHull, QhullError
+
+    centred = positions - positions.mean(axis=0)
+    _, _, axes = np.linalg.svd(centred, full_matrices=False)
+    spread = np.abs(centred @ axes.T).max(axis=0)  # extent along the principal axes, metres
+    dimensions = int((spread > PLANAR_TOLERANCE_M).sum())
+    if dimensions <= 1:  # one light, or lights on a line: its two ends
+        along = centred @ axes[0]
+        return torch.tensor(sorted({int(along.argmin()), int(along.argmax())}))
+    try:
+        vertices = ConvexHull(centred @ axes[:dimensions].T).vertices
+    except QhullError:
+        return torch.arange(positions.shape[0])
+    return torch.as_tensor(np.sort(vertices), dtype=torch.long)
+
+
+def sees_all_lights(normal: torch.Tensor, points: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
+    """Whether every light is certainly in front of each pixel's tangent plane.
+
+    Args:
+        normal: (3, n) normals.
+        points: (3, n) surface points, metres, camera frame.
+        corners: (E, 3) the lights ``extreme_lights`` selects.
+
+    Returns:
+        (n,) bool. True means the shadow mask s_k = [p_k . n - X . n > 0] is all ones. The test
+        keeps a margin of 64 rounding units over the shadow test's own rounding, so pixels whose
+        tangent plane passes within it of a hull light answer False (and take the full test).
+    """
+    scale = corners.abs().amax() + points.abs().amax(dim=0)
+    margin = 64 * torch.finfo(normal.dtype).eps * scale
+    height = (normal * points).sum(0)
+    return (corners @ normal).amin(dim=0) - height > margin
 
 
 def lighting_matrix(emission: torch.Tensor, lights: torch.Tensor) -> torch.Tensor:

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 
 from capture_sim.errors import InputError, check_array
+from reconstruct.lighting import extreme_lights, sees_all_lights
 
 # Unique entries of a symmetric 3x3 matrix, in the order (00, 11, 22, 01, 02, 12).
 _ROWS = (0, 1, 2, 0, 0, 1)
@@ -66,7 +67,11 @@ def _symmetric_apply(matrix: torch.Tensor, vector: torch.Tensor) -> torch.Tensor
 
 def _dot3(left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
     """Dot product over the size-3 axis -2 of (..., 3, N) tensors (broadcasting); (..., N)."""
-    return left[..., 0, :] * right[..., 0, :] + left[..., 1, :] * right[..., 1, :] + left[..., 2, :] * right[..., 2, :]
+    # unbind, not indexing: the backward of one unbind is one stack, while each indexed slice's
+    # backward fills a zero tensor of the whole input.
+    l0, l1, l2 = left.unbind(-2)
+    r0, r1, r2 = right.unbind(-2)
+    return l0 * r0 + l1 * r1 + l2 * r2
 
 
 def _symmetric_direction(system: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
@@ -97,9 +102,9 @@ def _alternate(normal, albedo, moments, rhs_moments, damping, steps):
     for _ in range(steps):
         quadratic = _dot3(_symmetric_apply(moments, normal), normal)  # n^T B_c n: (3c, N)
         albedo = (_dot3(rhs_moments, normal) / (quadratic + tiny)).clamp_min(0.0)
-        system = ((albedo * albedo)[:, None, :] * moments).sum(0)  # (6, N)
-        scale = (system[0] + system[1] + system[2]) / 3.0
-        system = torch.cat([system[:3] + (damping * scale + 1e-30), system[3:]])
+        s00, s11, s22, s01, s02, s12 = ((albedo * albedo)[:, None, :] * moments).sum(0).unbind(0)  # (6, N)
+        shift = damping * (s00 + s11 + s22) / 3.0 + 1e-30
+        system = torch.stack([s00 + shift, s11 + shift, s22 + shift, s01, s02, s12])
         direction = _symmetric_direction(system, (albedo[:, None, :] * rhs_moments).sum(0))
         # A zero direction (dark pixel) keeps the previous normal: no 0/0 in value or gradient.
         length2 = _dot3(direction, direction)
@@ -107,6 +112,29 @@ def _alternate(normal, albedo, moments, rhs_moments, damping, steps):
         direction = torch.where(usable, direction, normal.detach())
         normal = direction * torch.rsqrt(torch.where(usable, length2, torch.ones_like(length2)))
     return normal, albedo
+
+
+def _chunks(whole: torch.Tensor, done: torch.Tensor | None, size: int, only_selected: bool = False):
+    """Chunks of pixels to (re)form, as (part, whole_mask) with part a slice or index tensor.
+
+    ``whole`` (N,) marks pixels that see every light; ``done`` (N,) those whose stored moments
+    already hold the all-ones mask (None: nothing stored). Pixels with ``whole & done`` are
+    skipped; the rest come in chunks of at most ``size`` that are all-``whole`` or all-partial.
+    With ``only_selected`` the chunks cover exactly the pixels ``whole`` marks (as partial).
+    """
+    count = whole.numel()
+    if only_selected:
+        groups = [(torch.nonzero(whole).squeeze(1), False)]
+    elif done is None and bool(whole.all()):
+        for start in range(0, count, size):  # every pixel, one kind: slices, no gathers
+            yield slice(start, start + size), True
+        return
+    else:
+        pending = whole if done is None else whole & ~done
+        groups = [(torch.nonzero(pending).squeeze(1), True), (torch.nonzero(~whole).squeeze(1), False)]
+    for index, whole_mask in groups:
+        for start in range(0, index.numel(), size):
+            yield index[start : start + size], whole_mask
 
 
 def light_reach(points: torch.Tensor, lights: torch.Tensor, falloff) -> torch.Tensor:
@@ -122,22 +150,24 @@ def light_reach(points: torch.Tensor, lights: torch.Tensor, falloff) -> torch.Te
 
     Returns:
         (K, N) tensor in 1 / metres (times the falloff's unit), points' dtype; distances are
-        clamped to >= 1 mm as in the full solver.
+        clamped to >= 1 mm as in the full solver. Stored pixel-major (the transpose of a
+        contiguous (N, K) tensor), so that a window of pixels is a block of memory and the
+        solver's gathers of pixels copy whole rows.
 
     Raises:
         InputError: the falloff is not positive and finite at every distance.
     """
     lights = lights.to(points.dtype)
-    square = torch.cdist(lights, points).square().clamp_min(1e-6)
+    square = torch.cdist(points, lights).square().clamp_min(1e-6)
     if getattr(falloff, "kind", None) == "inverse_square":
         inverse = torch.rsqrt(square)
-        return inverse * inverse * inverse  # f / d = d^-3 without a square root or pow
+        return (inverse * inverse * inverse).T  # f / d = d^-3 without a square root or pow
     distance = square.sqrt()
     reach = falloff(distance) / distance
     # DESIGN section 3: a fitted falloff can have a pole and change sign inside the working range.
     if not bool((torch.isfinite(reach) & (reach > 0)).all()):
         raise InputError(f"falloff is not positive and finite over light distances {float(distance.min()):.3f}..{float(distance.max()):.3f} m")
-    return reach
+    return reach.T
 
 
 def solve_ps_unrolled(captures, emission, points, lights, falloff, config: UnrolledPSConfig = UnrolledPSConfig(), reach: torch.Tensor | None = None):
@@ -174,34 +204,64 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
     view = -points_t / points_t.norm(dim=0, keepdim=True).clamp_min(1e-12)
 
     def moments_for(lit_reach, table_values, values, part=slice(None)):
+        # Component by component via unbind (see ``_dot3``): b_i = S_i - X_i S_3, (M, 3c, n) each.
         count = values.shape[-1]
-        mixed = (table_values @ lit_reach).reshape(num_patterns, 3, 4, count)
-        b = mixed[:, :, :3] - points_t[:, part] * mixed[:, :, 3:]  # (M, 3c, 3, n)
-        weighted = b * equation_weight[:, :, None, part]
-        moments = torch.stack([(weighted[:, :, i] * b[:, :, j]).sum(0) for i, j in zip(_ROWS, _COLS)], dim=1)  # (3c, 6, n)
-        rhs_moments = (weighted * values[:, :, None, :]).sum(0)  # (3c, 3, n)
+        mixed = (table_values @ lit_reach).reshape(num_patterns, 3, 4, count).unbind(2)
+        b = [mixed[i] - points_t[i, part] * mixed[3] for i in range(3)]
+        weight = equation_weight[..., part]
+        weighted = [weight * component for component in b]
+        moments = torch.stack([(weighted[i] * b[j]).sum(0) for i, j in zip(_ROWS, _COLS)], dim=1)  # (3c, 6, n)
+        rhs_moments = torch.stack([(component * values).sum(0) for component in weighted], dim=1)  # (3c, 3, n)
         return moments, rhs_moments
 
-    def in_front(normal, part=slice(None)):
-        # l_k . n > 0  <=>  p_k . n > X . n: one (K, 3) @ (3, n) product; bool multiplies without a cast.
+    pixel_major = reach.stride(0) == 1  # as ``light_reach`` stores it
+
+    def in_front(normal, part):
+        # l_k . n > 0  <=>  p_k . n > X . n: one (K, 3) @ (3, n) product, laid out like ``reach``
+        # (mixed layouts make the elementwise product several times slower); bool multiplies
+        # without a cast.
+        if pixel_major:
+            return ((normal.T @ lights.T) > _dot3(normal, points_t[:, part])[:, None]).T
         return (lights @ normal) > _dot3(normal, points_t[:, part])
 
-    lit_reach = torch.empty(lights.shape[0], num_pixels, dtype=dtype)  # final s_kn f_kn / d_kn
+    def columns(values, part):
+        # values[:, part]; pixel-major storage gathers whole rows (~10x faster than columns).
+        if isinstance(part, slice):
+            return values[:, part]
+        return values.T.index_select(0, part).T if pixel_major else values[:, part]
+
+    def masked_reach(part, normal, whole_mask: bool):
+        # (K, n) s_k f_k / d_k of the pixels ``part``; pixels known to see every light skip the test.
+        chosen = columns(reach, part)
+        return chosen if whole_mask else chosen * in_front(normal, part)
+
+    # Pixels that see every light (``sees_all_lights``, a test on the few hull lights) have the
+    # all-ones mask: their moments are formed once and their (K, n) shadow test is skipped.
+    corners = lights[extreme_lights(lights)]
+    table_values, values = table.detach(), intensity.detach()
     with torch.no_grad():
         # The (K, n) shadow work and matrix products run in chunks of pixels that stay in cache;
         # the per-pixel alternations run on all pixels at once (fewer, wider operations).
         normal, albedo = view.clone(), torch.ones_like(view)
-        values = intensity.detach()
         moments = torch.empty(3, 6, num_pixels, dtype=dtype)
         rhs_moments = torch.empty(3, 3, num_pixels, dtype=dtype)
-        for _ in range(config.shadow_iterations):
-            for start in range(0, num_pixels, config.chunk_pixels):
-                part = slice(start, start + config.chunk_pixels)
-                moments[..., part], rhs_moments[..., part] = moments_for(reach[:, part] * in_front(normal[:, part], part), table.detach(), values[..., part], part)
+        whole_moments = torch.zeros(num_pixels, dtype=torch.bool)  # moments hold the all-ones mask
+        for iteration in range(config.shadow_iterations):
+            whole = sees_all_lights(normal, points_t, corners)
+            for part, whole_mask in _chunks(whole, whole_moments if iteration else None, config.chunk_pixels):
+                moments[..., part], rhs_moments[..., part] = moments_for(masked_reach(part, normal[:, part], whole_mask), table_values, values[..., part], part)
+            whole_moments = whole
             normal, albedo = _alternate(normal, albedo, moments, rhs_moments, config.damping, config.alternations)
-        for start in range(0, num_pixels, config.chunk_pixels):
-            part = slice(start, start + config.chunk_pixels)
-            lit_reach[:, part] = reach[:, part] * in_front(normal[:, part], part)
+        whole = sees_all_lights(normal, points_t, corners)
+        lit_reach = reach
+        if not bool(whole.all()):
+            lit_reach = reach.clone()  # keeps the layout
+            for part, _ in _chunks(~whole, None, config.chunk_pixels, only_selected=True):
+                masked = masked_reach(part, normal[:, part], False)
+                if pixel_major:
+                    lit_reach.T.index_copy_(0, part, masked.T)
+                else:
+                    lit_reach[:, part] = masked
     moments, rhs_moments = moments_for(lit_reach, table, intensity)
     normal, albedo = _alternate(normal, albedo, moments, rhs_moments, config.damping, config.grad_alternations)
     # Return camera-facing normals: a back-facing solution (specular or unconverged pixels) is

@@ -4,6 +4,8 @@ import torch
 from capture_sim.display import display_emission
 from capture_sim.rig import load_rig
 from capture_sim.synth import lambertian_sphere
+from reconstruct import unrolled_ps as unrolled_module
+from reconstruct.lighting import extreme_lights
 from reconstruct.metrics import angular_error_deg
 from reconstruct.unrolled_ps import _COLS, _ROWS, UnrolledPSConfig, _symmetric_direction, light_reach, solve_ps_unrolled
 from train.scene_pixels import scene_pixels
@@ -77,3 +79,19 @@ def test_precomputed_reach_and_chunks_give_the_same_solution():
     torch.testing.assert_close(reach, falloff(distance) / distance)
     chunked, _ = solve_ps_unrolled(captures, emission, pixels.points, lights, falloff, UnrolledPSConfig(chunk_pixels=100), reach=reach)
     torch.testing.assert_close(chunked, plain)
+
+
+def test_pixels_that_see_every_light_skip_the_shadow_test_without_changing_the_solution(monkeypatch):
+    # The sphere's silhouette pixels have attached shadows, its centre none: both paths are used.
+    patterns = np.load("patterns/data/ddps/initial_tri_gradient.npy")
+    pixels, captures, emission = _sphere_captures(patterns)
+    lights, falloff = pixels.lights().double(), pixels.rig.falloff
+    points = pixels.points.double()
+    config = UnrolledPSConfig(chunk_pixels=97)
+    fast, fast_albedo = solve_ps_unrolled(captures, emission, points, lights, falloff, config)
+    whole = unrolled_module.sees_all_lights(fast.T, points.T, lights[extreme_lights(lights)])
+    assert 0.2 < float(whole.double().mean()) < 0.95
+    monkeypatch.setattr(unrolled_module, "sees_all_lights", lambda normal, *_: torch.zeros(normal.shape[1], dtype=torch.bool))
+    full, full_albedo = solve_ps_unrolled(captures, emission, points, lights, falloff, config)
+    torch.testing.assert_close(fast, full, rtol=0, atol=1e-9)
+    torch.testing.assert_close(fast_albedo, full_albedo, rtol=0, atol=1e-9)

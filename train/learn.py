@@ -203,7 +203,7 @@ def reconstruct_draws(draws: list, solver: str, ps_config: UnrolledPSConfig) -> 
             result = solve_ps(captures, first_capture.emission, points, pixels.lights(), pixels.rig.falloff)
             normal, albedo = result.normal, result.albedo
         else:
-            reach = torch.cat([draws[i][0].reach[:, draws[i][1]] for i in members], dim=1)
+            reach = torch.cat([draws[i][0].reach[:, draws[i][1]].T for i in members]).T  # pixel-major, as stored
             normal, albedo = solve_ps_unrolled(captures, first_capture.emission, points, pixels.lights(), pixels.rig.falloff, ps_config, reach=reach)
         sizes = [draws[i][2].captures.shape[1] for i in members]
         for i, scene_normal, scene_albedo in zip(members, normal.split(sizes), albedo.split(sizes)):
