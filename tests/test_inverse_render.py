@@ -466,6 +466,25 @@ def test_initial_estimate_on_patterns_is_finite_and_unit(small_scene):
     assert bool(torch.isfinite(initial.albedo).all()) and bool((initial.albedo >= 0).all())
 
 
+def test_least_squares_start_is_bounded_by_the_photometric_stereo_albedo_and_the_specular_floor(small_scene, monkeypatch):
+    # Least squares that give rho_d above the photometric-stereo albedo (which takes all reflected
+    # light as diffuse) or rho_s ~ 0 start the fit in a minimum with an over-bright basis.
+    scene, pixels = small_scene
+    captures, emission, *_ = _olat_fit_data(pixels)
+    initial = initial_estimate(captures, emission, pixels.points, pixels.lights(), Falloff(),
+                               pixel_index=pixels.transport.pixel_index, height=scene.height, width=scene.width)
+    config = FitConfig(num_basis=3)
+    _, centres = cluster_albedo(initial.albedo, initial.valid, 3, config.seed)
+
+    def too_bright_and_no_specular(*args, **kwargs):
+        return torch.stack([2.0 * centres[0], 0.5 * centres[1], torch.full((3,), math.nan)]), torch.zeros(3)
+
+    monkeypatch.setattr(inverse_render, "least_squares_albedos", too_bright_and_no_specular)
+    model = inverse_render._initial_model(captures, emission, pixels.points, pixels.lights(), Falloff(), initial, config)
+    torch.testing.assert_close(model.diffuse(), torch.stack([centres[0], 0.5 * centres[1], centres[2]]))
+    torch.testing.assert_close(model.specular(), torch.full((3,), config.initial_specular * config.specular_floor))
+
+
 # ----------------------------------------------------------------------------------------------
 # Relighting metrics
 # ----------------------------------------------------------------------------------------------
