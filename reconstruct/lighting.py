@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from capture_sim.errors import InputError
+from capture_sim.errors import InputError, check_array
 from capture_sim.rig import Falloff
 
 SYMMETRIC_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
@@ -191,7 +191,13 @@ def extreme_lights(lights: torch.Tensor) -> torch.Tensor:
 
     Returns:
         (E,) long indices into the lights, sorted (all K if the hull cannot be formed).
+
+    Raises:
+        InputError: ``lights`` is not a non-empty finite (K, 3) array.
     """
+    check_array("lights", lights, ("K", 3))
+    if lights.shape[0] < 1:
+        raise InputError("lights must hold at least one superpixel")
     positions = lights.detach().double().cpu().numpy()
     key = positions.tobytes()
     if key not in _EXTREME_CACHE:
@@ -230,8 +236,15 @@ def sees_all_lights(normal: torch.Tensor, points: torch.Tensor, corners: torch.T
     Returns:
         (n,) bool. True means the shadow mask s_k = [p_k . n - X . n > 0] is all ones. The test
         keeps a margin of 64 rounding units over the shadow test's own rounding, so pixels whose
-        tangent plane passes within it of a hull light answer False (and take the full test).
+        tangent plane passes within it of a hull light answer False (and take the full test);
+        so do pixels with non-finite values.
+
+    Raises:
+        InputError: shapes do not match. Values are not scanned (a hot path of learning).
     """
+    check_array("normal", normal, (3, "n"), finite=False)
+    check_array("points", points, (3, normal.shape[1]), finite=False)
+    check_array("corners", corners, ("E", 3), finite=False)
     scale = corners.abs().amax() + points.abs().amax(dim=0)
     margin = 64 * torch.finfo(normal.dtype).eps * scale
     height = (normal * points).sum(0)

@@ -114,27 +114,10 @@ def _alternate(normal, albedo, moments, rhs_moments, damping, steps):
     return normal, albedo
 
 
-def _chunks(whole: torch.Tensor, done: torch.Tensor | None, size: int, only_selected: bool = False):
-    """Chunks of pixels to (re)form, as (part, whole_mask) with part a slice or index tensor.
-
-    ``whole`` (N,) marks pixels that see every light; ``done`` (N,) those whose stored moments
-    already hold the all-ones mask (None: nothing stored). Pixels with ``whole & done`` are
-    skipped; the rest come in chunks of at most ``size`` that are all-``whole`` or all-partial.
-    With ``only_selected`` the chunks cover exactly the pixels ``whole`` marks (as partial).
-    """
-    count = whole.numel()
-    if only_selected:
-        groups = [(torch.nonzero(whole).squeeze(1), False)]
-    elif done is None and bool(whole.all()):
-        for start in range(0, count, size):  # every pixel, one kind: slices, no gathers
-            yield slice(start, start + size), True
-        return
-    else:
-        pending = whole if done is None else whole & ~done
-        groups = [(torch.nonzero(pending).squeeze(1), True), (torch.nonzero(~whole).squeeze(1), False)]
-    for index, whole_mask in groups:
-        for start in range(0, index.numel(), size):
-            yield index[start : start + size], whole_mask
+def _index_chunks(mask: torch.Tensor, size: int):
+    """Index tensors of at most ``size`` of the pixels ``mask`` (N,) bool marks."""
+    index = torch.nonzero(mask).squeeze(1)
+    return [index[start : start + size] for start in range(0, index.numel(), size)]
 
 
 def light_reach(points: torch.Tensor, lights: torch.Tensor, falloff) -> torch.Tensor:
@@ -246,9 +229,15 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
         moments = torch.empty(3, 6, num_pixels, dtype=dtype)
         rhs_moments = torch.empty(3, 3, num_pixels, dtype=dtype)
         whole_moments = torch.zeros(num_pixels, dtype=torch.bool)  # moments hold the all-ones mask
-        for iteration in range(config.shadow_iterations):
+        for _ in range(config.shadow_iterations):
             whole = sees_all_lights(normal, points_t, corners)
-            for part, whole_mask in _chunks(whole, whole_moments if iteration else None, config.chunk_pixels):
+            pending = whole & ~whole_moments  # all-ones mask, not yet stored
+            if bool(pending.all()):  # every pixel, one kind: slices, no gathers
+                parts = [(slice(start, start + config.chunk_pixels), True) for start in range(0, num_pixels, config.chunk_pixels)]
+            else:
+                parts = [(part, True) for part in _index_chunks(pending, config.chunk_pixels)]
+                parts += [(part, False) for part in _index_chunks(~whole, config.chunk_pixels)]
+            for part, whole_mask in parts:
                 moments[..., part], rhs_moments[..., part] = moments_for(masked_reach(part, normal[:, part], whole_mask), table_values, values[..., part], part)
             whole_moments = whole
             normal, albedo = _alternate(normal, albedo, moments, rhs_moments, config.damping, config.alternations)
@@ -256,7 +245,7 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
         lit_reach = reach
         if not bool(whole.all()):
             lit_reach = reach.clone()  # keeps the layout
-            for part, _ in _chunks(~whole, None, config.chunk_pixels, only_selected=True):
+            for part in _index_chunks(~whole, config.chunk_pixels):
                 masked = masked_reach(part, normal[:, part], False)
                 if pixel_major:
                     lit_reach.T.index_copy_(0, part, masked.T)

@@ -1,5 +1,9 @@
+import math
+
+import pytest
 import torch
 
+from capture_sim.errors import InputError
 from capture_sim.rig import load_rig
 from reconstruct.lighting import extreme_lights, sees_all_lights
 
@@ -28,3 +32,14 @@ def test_sees_all_lights_never_claims_a_shadowed_light_in_front():
         exact = ((lights.to(dtype) @ normal.to(dtype)) > (normal.to(dtype) * points.to(dtype)).sum(0)).all(0)
         assert not bool((claimed & ~exact).any())
         assert float(claimed.double().mean()) > 0.2 and bool((exact & ~claimed).double().mean() < 0.01)
+
+
+def test_bad_inputs_are_refused():
+    with pytest.raises(InputError):
+        extreme_lights(torch.zeros(5, 2))
+    with pytest.raises(InputError):
+        extreme_lights(torch.zeros(0, 3))
+    with pytest.raises(InputError):
+        extreme_lights(torch.tensor([[0.0, 0.0, math.nan]]))
+    with pytest.raises(InputError):
+        sees_all_lights(torch.zeros(3, 4), torch.zeros(3, 5), torch.zeros(2, 3))
