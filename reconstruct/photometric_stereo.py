@@ -26,12 +26,13 @@ Phi (``pixel_solve.implicit_step``): after the search, one differentiable Newton
     a_out = a* + (I - dPhi/da)^-1 (Phi(a*) - a*)      (a*, dPhi/da detached)
 has the derivative (I - dPhi/da)^-1 dPhi/dtheta of the fixed point. Every pixel outputs the
 searched value with that derivative, so values do not depend on gradient tracking. The cost is one
-alternation plus three small per-pixel backward passes; the shadowed (pixels x lights) weights
-are re-formed block by block in the backward pass instead of being kept. Unrolling a few
-alternations from a detached start would be cheaper but biased. The gradient is the same in every
-configuration; ``torch.autograd.gradcheck`` needs tight convergence (tolerance_deg=1e-10,
-max_alternations=1000, as in tests/test_photometric_stereo.py) because finite differences of the
-solver are otherwise limited by its stopping tolerance.
+alternation plus the per-pixel 3x3 Jacobian dPhi/da in closed form
+(``pixel_solve.alternation_jacobian``); the shadowed (pixels x lights) weights are re-formed
+block by block in the backward pass instead of being kept. Unrolling a few alternations from a
+detached start would be cheaper but biased. The gradient is the same in every configuration;
+``torch.autograd.gradcheck`` needs tight convergence (tolerance_deg=1e-10, max_alternations=1000,
+as in tests/test_photometric_stereo.py) because finite differences of the solver are otherwise
+limited by its stopping tolerance.
 """
 from __future__ import annotations
 

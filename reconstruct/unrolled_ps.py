@@ -26,6 +26,7 @@ import torch
 
 from capture_sim.errors import InputError, check_array
 from reconstruct.lighting import extreme_lights, sees_all_lights
+from reconstruct.pixel_solve import symmetric_apply
 
 # Unique entries of a symmetric 3x3 matrix, in the order (00, 11, 22, 01, 02, 12).
 _ROWS = (0, 1, 2, 0, 0, 1)
@@ -58,13 +59,6 @@ class UnrolledPSConfig:
             raise InputError(f"UnrolledPSConfig.damping must be positive, got {self.damping}")
 
 
-def _symmetric_apply(matrix: torch.Tensor, vector: torch.Tensor) -> torch.Tensor:
-    """S v for symmetric S given as (..., 6, N) unique entries and v (..., 3, N); (..., 3, N)."""
-    s00, s11, s22, s01, s02, s12 = matrix.unbind(-2)
-    v0, v1, v2 = vector.unbind(-2)
-    return torch.stack([s00 * v0 + s01 * v1 + s02 * v2, s01 * v0 + s11 * v1 + s12 * v2, s02 * v0 + s12 * v1 + s22 * v2], dim=-2)
-
-
 def _dot3(left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
     """Dot product over the size-3 axis -2 of (..., 3, N) tensors (broadcasting); (..., N)."""
     # unbind, not indexing: the backward of one unbind is one stack, while each indexed slice's
@@ -86,7 +80,7 @@ def _symmetric_direction(system: torch.Tensor, rhs: torch.Tensor) -> torch.Tenso
     c01, c02, c12 = e * f - d * c, d * f - b * e, d * e - a * f
     det = a * c00 + d * c01 + e * c02
     adjugate = torch.stack([c00, c11, c22, c01, c02, c12])
-    return _symmetric_apply(adjugate, rhs) / det.abs().clamp_min(1e-30)
+    return symmetric_apply(adjugate, rhs) / det.abs().clamp_min(1e-30)
 
 
 def _alternate(normal, albedo, moments, rhs_moments, damping, steps):
@@ -100,7 +94,7 @@ def _alternate(normal, albedo, moments, rhs_moments, damping, steps):
     # Relative floor, plus an absolute one well above the dtype's underflow for all-dark inputs.
     tiny = 1e-12 * moments.detach().abs().amax() + torch.finfo(moments.dtype).tiny ** 0.5
     for _ in range(steps):
-        quadratic = _dot3(_symmetric_apply(moments, normal), normal)  # n^T B_c n: (3c, N)
+        quadratic = _dot3(symmetric_apply(moments, normal), normal)  # n^T B_c n: (3c, N)
         albedo = (_dot3(rhs_moments, normal) / (quadratic + tiny)).clamp_min(0.0)
         s00, s11, s22, s01, s02, s12 = ((albedo * albedo)[:, None, :] * moments).sum(0).unbind(0)  # (6, N)
         shift = damping * (s00 + s11 + s22) / 3.0 + 1e-30

@@ -10,7 +10,7 @@ from capture_sim.errors import InputError
 from capture_sim.rig import Falloff, panel_positions
 from reconstruct.metrics import angular_error_deg, normal_metrics
 from reconstruct.photometric_stereo import FLAG_NAMES, PSConfig, PSResult, solve_ps, solve_ps_image
-from reconstruct.pixel_solve import CONDITION_CAP
+from reconstruct.pixel_solve import CONDITION_CAP, alternation, alternation_jacobian, normalised_moments
 from reconstruct.reference import ps_reference
 from tests.reconstruct_scenes import capture, emission_of, load_patterns, pattern_names, sphere_scene
 
@@ -138,6 +138,29 @@ def test_gradcheck_wrt_emission_and_captures():
 
     inputs = (emission.clone().requires_grad_(True), captures.clone().requires_grad_(True))
     assert torch.autograd.gradcheck(solve, inputs, eps=1e-6, atol=1e-5, rtol=1e-3, fast_mode=True)
+
+
+def test_alternation_jacobian_matches_autograd():
+    # Random moments with the awkward cases: identical patterns (singular systems), all-black
+    # pixels, channels whose albedo the relu clamps at 0, and zero albedo.
+    generator = torch.Generator().manual_seed(3)
+    count, num_patterns = 600, 4
+    vectors = torch.randn(num_patterns, 3, 3, count, generator=generator, dtype=torch.float64)
+    vectors[:, :, :, :100] = vectors[:1, :, :, :100]
+    vectors[:, :, :, 100:150] = 0
+    captures = torch.rand(num_patterns, 3, count, generator=generator, dtype=torch.float64)
+    captures[:, 0, 200:300] *= -1
+    moments = normalised_moments(vectors, captures, torch.ones_like(captures), captures.abs().amax(dim=(0, 1)))
+    albedo = torch.rand(3, count, generator=generator, dtype=torch.float64) + 0.1
+    albedo[:, 300:350] = 0
+    probe = albedo.clone().requires_grad_(True)
+    mapped, _ = alternation(probe, moments, 1e-9)
+    directions = torch.eye(3, dtype=torch.float64)[:, :, None].expand(3, 3, count)
+    expected = torch.autograd.grad(mapped, probe, directions, is_grads_batched=True)[0]
+    jacobian = alternation_jacobian(albedo, moments, 1e-9)
+    assert torch.isfinite(jacobian).all()
+    scale = expected.abs().amax(dim=(0, 1)).clamp_min(1.0)
+    assert ((jacobian - expected).abs().amax(dim=(0, 1)) / scale).max() < 1e-9
 
 
 def test_values_do_not_depend_on_gradient_tracking(sphere):
