@@ -13,10 +13,13 @@ from capture_sim.errors import InputError
 
 
 @contextmanager
-def atomic_path(path: str | Path, suffix: str = ""):
+def atomic_path(path: str | Path, suffix: str = "", sync: bool = False):
     """Yield a temporary path next to ``path``; on success it replaces ``path`` in one rename.
 
     ``suffix`` keeps the file ending that some writers need (e.g. ``.png`` for matplotlib).
+    ``sync`` flushes the file to disk before the rename, so that after a crash ``path`` holds the
+    old or the new content, never a truncated file (used for checkpoints that runs resume from;
+    it costs a disk flush per file).
     """
     path = Path(path)
     try:
@@ -32,6 +35,9 @@ def atomic_path(path: str | Path, suffix: str = ""):
     os.chmod(tmp, 0o666 & ~umask)
     try:
         yield Path(tmp)
+        if sync:
+            with open(tmp, "rb") as written:
+                os.fsync(written.fileno())
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):

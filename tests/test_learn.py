@@ -85,6 +85,21 @@ def test_normal_loss_is_finite_at_exact_match():
     assert float(loss.detach()) < 1e-2 and torch.isfinite(normal.grad).all()
 
 
+def test_damaged_or_foreign_checkpoints_are_refused(tmp_path, scene_dirs):
+    config = _config(scene_dirs, steps=2, val_every=0)
+    train_patterns(config, tmp_path / "a.npz", progress=False)
+    checkpoint = (tmp_path / "a.ckpt.pt").read_bytes()
+    for name, content in (("truncated", checkpoint[: len(checkpoint) // 2]), ("text", b"not a checkpoint\n")):
+        (tmp_path / f"{name}.ckpt.pt").write_bytes(content)
+        with pytest.raises(InputError, match="damaged or not a torch checkpoint"):
+            train_patterns(config, tmp_path / f"{name}.npz", progress=False)
+    torch.save({"logits": torch.zeros(3)}, tmp_path / "foreign.ckpt.pt")
+    with pytest.raises(InputError, match="not a displex training checkpoint"):
+        train_patterns(config, tmp_path / "foreign.npz", progress=False)
+    with pytest.raises(InputError, match="another config"):
+        train_patterns(_config(scene_dirs, steps=3, val_every=0), tmp_path / "a.npz", progress=False)
+
+
 def test_bad_config_raises(tmp_path, scene_dirs):
     with pytest.raises(InputError, match="init"):
         train_patterns(_config(scene_dirs, init="no_such_family"), tmp_path / "x.npz", progress=False)
@@ -213,7 +228,7 @@ def test_logits_stay_movable_even_with_huge_steps(tmp_path, scene_dirs):
 
     config = _config(scene_dirs, learning_rate=50.0, steps=3, checkpoint_every=3, val_every=0)
     train_patterns(config, tmp_path / "big.npz", progress=False)
-    logits = torch.load(tmp_path / "big.ckpt.pt", weights_only=False)["logits"]
+    logits = torch.load(tmp_path / "big.ckpt.pt", weights_only=True)["logits"]
     assert float(logits.abs().max()) <= LOGIT_LIMIT
     # Every value keeps a non-zero gradient through the sigmoid.
     values = logits.clone().requires_grad_(True)

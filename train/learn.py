@@ -235,6 +235,29 @@ def checkpoint_path(out: Path) -> Path:
     return out.with_name(out.stem + ".ckpt.pt")
 
 
+CHECKPOINT_KEYS = ("config", "logits", "optimiser", "scheduler", "step", "val_history")
+
+
+def load_checkpoint(checkpoint: Path, resolved: dict) -> dict:
+    """The training state saved in ``checkpoint`` by a run with the config ``resolved``.
+
+    Loaded with ``weights_only`` (tensors and plain containers; a checkpoint never runs code).
+
+    Raises:
+        InputError: the file is unreadable or incomplete (e.g. truncated), or was written with
+            another config; the message says to delete it to start afresh.
+    """
+    try:
+        state = torch.load(checkpoint, weights_only=True)
+    except Exception:  # a damaged file fails in the zip reader or the unpickler, in many ways
+        raise InputError(f"checkpoint {checkpoint} is damaged or not a torch checkpoint; delete it to start afresh") from None
+    if not isinstance(state, dict) or not all(key in state for key in CHECKPOINT_KEYS):
+        raise InputError(f"checkpoint {checkpoint} is not a displex training checkpoint; delete it to start afresh")
+    if state["config"] != resolved:
+        raise InputError(f"checkpoint {checkpoint} was written with another config; delete it to start afresh")
+    return state
+
+
 def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, progress: bool = True) -> TrainResult:
     """Learn patterns, write them to ``out`` (.npz) with the resolved config beside them.
 
@@ -254,9 +277,7 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
     start_step, val_history, loss_value = 0, [], float("nan")
     checkpoint = checkpoint_path(out)
     if checkpoint.exists():
-        state = torch.load(checkpoint, weights_only=False)
-        if state["config"] != resolved:
-            raise InputError(f"checkpoint {checkpoint} was written with another config; delete it to start afresh")
+        state = load_checkpoint(checkpoint, resolved)
         with torch.no_grad():
             logits.copy_(state["logits"])
         optimiser.load_state_dict(state["optimiser"])
@@ -284,7 +305,7 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
         bar.set_postfix(loss=f"{loss_value:.4f}", **({"val_mae": f"{val_history[-1][1]:.2f}"} if val_history else {}))
         if done % config.checkpoint_every == 0 or done == config.steps:
             state = {"config": resolved, "logits": logits.detach().clone(), "optimiser": optimiser.state_dict(), "scheduler": scheduler.state_dict(), "step": done, "val_history": val_history, "loss": loss_value}
-            with atomic_path(checkpoint, suffix=".pt") as tmp:
+            with atomic_path(checkpoint, suffix=".pt", sync=True) as tmp:
                 torch.save(state, tmp)
     if writer is not None:
         writer.close()
