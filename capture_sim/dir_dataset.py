@@ -33,7 +33,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from capture_sim.errors import InputError
+from capture_sim.array_files import read_arrays
+from capture_sim.errors import InputError, check_array
 from capture_sim.rig import Rig
 from capture_sim.scene import Scene
 
@@ -301,10 +302,11 @@ def _read_geometry(folder: Path, layout: str, size: tuple[int, int], notes: dict
 
 
 def _load_npy(path: Path) -> np.ndarray:
-    try:
-        return np.load(path, allow_pickle=False).astype(np.float64)
-    except (OSError, ValueError) as err:
-        raise InputError(f"{path}: not a readable .npy array ({err})") from None
+    array = read_arrays(path, ".npy array")
+    if not isinstance(array, np.ndarray):
+        raise InputError(f"{path}: an .npz archive, expected a plain .npy array")
+    check_array(str(path), array, finite=False)  # numbers; NaN is allowed outside the mask
+    return array.astype(np.float64)
 
 
 def _load_mat_normals(path: Path) -> np.ndarray:

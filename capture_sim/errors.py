@@ -15,6 +15,18 @@ class InputError(ValueError):
     """Bad input from a user: wrong shape, non-finite data, out-of-range values, missing file."""
 
 
+MAX_SEED = 2**32 - 1
+"""Largest seed accepted. Seeds derived from it (seed * 1000 + scene index and the like) stay
+well inside the 64-bit range of torch's and numpy's generators."""
+
+
+def check_seed(name: str, seed) -> int:
+    """``seed`` as an int if it is a whole number in [0, MAX_SEED], else ``InputError``."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed <= MAX_SEED:
+        raise InputError(f"{name} must be a whole number in [0, {MAX_SEED}], got {seed!r}")
+    return int(seed)
+
+
 def check_array(
     name: str,
     value,
@@ -36,6 +48,8 @@ def check_array(
     """
     if not isinstance(value, (np.ndarray, torch.Tensor)):
         raise InputError(f"{name}: expected an array, got {type(value).__name__}")
+    if isinstance(value, np.ndarray) and value.dtype.kind not in "biuf":
+        raise InputError(f"{name}: expected numbers, got an array of dtype {value.dtype}")
     actual = tuple(value.shape)
     if shape is not None:
         expected = tuple(shape)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from capture_sim.errors import InputError, check_array
+from capture_sim.errors import InputError, check_array, check_seed
 
 MATERIALS: tuple[str, ...] = ("lambertian", "textured", "svbrdf", "regions", "glossy")
 
@@ -122,8 +122,7 @@ def make_material(kind: str, points, seed: int = 0, albedo=None) -> Material:
     """
     if kind not in MATERIALS:
         raise InputError(f"unknown material {kind!r}; choose from {', '.join(MATERIALS)}")
-    if not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise InputError(f"seed must be a non-negative integer, got {seed!r}")
+    check_seed("seed", seed)
     points = torch.as_tensor(points, dtype=torch.float64)
     check_array("points", points, ("H", "W", 3))
     if albedo is not None and kind != "lambertian":

@@ -6,13 +6,13 @@ every command fails with one clear message on a bad file.
 from __future__ import annotations
 
 import json
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from capture_sim.array_files import read_arrays
 from capture_sim.atomic import save_npz
 from capture_sim.errors import InputError, check_array
 from capture_sim.geometry import points_from_depth
@@ -84,6 +84,8 @@ def validate_scene(scene: Scene) -> None:
     check_array(f"{name}: mask", scene.mask, (height, width))
     if scene.mask.dtype != np.bool_:
         raise InputError(f"{name}: mask must be bool, got {scene.mask.dtype}")
+    if not scene.mask.any():
+        raise InputError(f"{name}: mask selects no pixels")
     check_array(f"{name}: K_cam", scene.K_cam, (3, 3))
     intrinsics = np.asarray(scene.K_cam, dtype=np.float64)
     if not (intrinsics[0, 0] > 0 and intrinsics[1, 1] > 0 and np.array_equal(intrinsics[2], [0.0, 0.0, 1.0])):
@@ -118,14 +120,13 @@ _ARRAY_KEYS = ("olat", "mask", "K_cam", "light_positions", "normal", "depth", "d
 def load_scene(path: str | Path) -> Scene:
     """Read and validate a scene interchange ``.npz`` (DESIGN section 7)."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"scene file not found: {path}")
+    arrays = read_arrays(path, "scene", keys=(*_ARRAY_KEYS, "meta"))
+    if isinstance(arrays, np.ndarray):
+        raise InputError(f"{path}: a plain .npy array, but a scene is an .npz of named arrays (DESIGN section 7)")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in _ARRAY_KEYS if key in data}
-            meta = json.loads(str(data["meta"])) if "meta" in data else {}
-    except (OSError, ValueError, zipfile.BadZipFile, json.JSONDecodeError) as err:
-        raise InputError(f"{path}: not a readable scene .npz ({err})") from None
+        meta = json.loads(str(arrays.pop("meta"))) if "meta" in arrays else {}
+    except ValueError as err:
+        raise InputError(f"{path}: scene meta is not JSON ({err})") from None
     for required in ("olat", "mask", "K_cam", "light_positions"):
         if required not in arrays:
             raise InputError(f"{path}: scene is missing required array '{required}'")

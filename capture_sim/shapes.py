@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from capture_sim.errors import InputError, check_array
+from capture_sim.errors import InputError, check_array, check_seed
 from capture_sim.geometry import pixel_rays
 
 GRAZING_COS = 0.05
@@ -576,8 +576,7 @@ def make_shape(name: str, seed: int = 0, distance: float = 0.5) -> Shape:
     """
     if name not in SHAPES:
         raise InputError(f"unknown shape {name!r}; choose from {', '.join(SHAPES)}")
-    if not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise InputError(f"seed must be a non-negative integer, got {seed!r}")
+    check_seed("seed", seed)
     if not 0.2 <= distance <= 5.0:
         raise InputError(f"shape distance must be 0.2..5 m, got {distance}")
     rng = np.random.default_rng([int(seed), 11])

@@ -23,7 +23,7 @@ import torch
 from tqdm import tqdm
 
 from capture_sim.atomic import write_json
-from capture_sim.errors import InputError
+from capture_sim.errors import InputError, check_seed
 from capture_sim.materials import MATERIALS, make_material
 from capture_sim.render import render_olat
 from capture_sim.rig import Rig
@@ -179,8 +179,7 @@ def default_scene_specs(seed: int = 0) -> dict[str, list[SceneSpec]]:
     Returns:
         ``{"train": [...], "test": [...]}`` of ``SceneSpec``.
     """
-    if not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise InputError(f"seed must be a non-negative integer, got {seed!r}")
+    check_seed("seed", seed)
     specs: dict[str, list[SceneSpec]] = {}
     index = 0
     for split, pairs in (("train", _DEFAULT_TRAIN), ("test", _DEFAULT_TEST)):

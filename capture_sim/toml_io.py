@@ -22,3 +22,7 @@ def load_toml(path: str | Path) -> dict:
             return tomllib.load(handle)
     except tomllib.TOMLDecodeError as err:
         raise InputError(f"{path}: invalid TOML: {err}") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a TOML file (not UTF-8 text)") from None
+    except OSError as err:
+        raise InputError(f"cannot read {path}: {err.strerror or err}") from None

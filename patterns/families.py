@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from capture_sim.errors import InputError, check_array
+from capture_sim.errors import InputError, check_array, check_seed
 
 DEFAULT_SHARPNESS = 40.0
 """Slope of sigmoid edges in 1/cells: binary to ~1e-8 half a cell away from an edge."""
@@ -116,7 +116,7 @@ class Family:
         self.check(num_patterns, rows, cols)
         if preset not in PRESETS:
             raise InputError(f"unknown preset {preset!r}; presets: {', '.join(PRESETS)}")
-        return self._parameters(int(num_patterns), int(rows), int(cols), preset, int(seed))
+        return self._parameters(int(num_patterns), int(rows), int(cols), preset, check_seed("seed", seed))
 
     def bounds(self, num_patterns: int, rows: int = 9, cols: int = 16) -> tuple[np.ndarray, np.ndarray]:
         """(low, high): two (P,) float64 arrays of the search bounds."""

@@ -7,17 +7,15 @@ from __future__ import annotations
 
 import io
 import json
-import zipfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from capture_sim.array_files import read_arrays
 from capture_sim.atomic import write_bytes
 from capture_sim.errors import InputError, check_array
 
-_NPY_MAGIC = b"\x93NUMPY"
-_ZIP_MAGIC = b"PK"
 
 
 def validate_patterns(patterns, name: str = "patterns") -> np.ndarray:
@@ -72,27 +70,19 @@ def load_patterns(path: str | Path) -> tuple[np.ndarray, dict]:
         meta: the file's meta dict ({} for a plain .npy).
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"pattern file not found: {path}")
-    with path.open("rb") as handle:
-        magic = handle.read(len(_NPY_MAGIC))
+    contents = read_arrays(path, "pattern", keys=("patterns", "meta"))
     meta: dict = {}
-    try:
-        if magic.startswith(_NPY_MAGIC):
-            values = np.load(path, allow_pickle=False)
-        elif magic.startswith(_ZIP_MAGIC):
-            with np.load(path, allow_pickle=False) as data:
-                if "patterns" not in data:
-                    raise InputError(f"{path}: pattern .npz has no 'patterns' array")
-                values = data["patterns"]
-                if "meta" in data:
-                    meta = json.loads(str(data["meta"]))
-        else:
-            raise InputError(f"{path}: not a pattern file (.npz or .npy)")
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
-        if isinstance(err, InputError):
-            raise
-        raise InputError(f"{path}: not a readable pattern file ({err})") from None
+    if isinstance(contents, np.ndarray):
+        values = contents
+    else:
+        if "patterns" not in contents:
+            raise InputError(f"{path}: pattern .npz has no 'patterns' array")
+        values = contents["patterns"]
+        if "meta" in contents:
+            try:
+                meta = json.loads(str(contents["meta"]))
+            except ValueError as err:
+                raise InputError(f"{path}: pattern meta is not JSON ({err})") from None
     if not isinstance(meta, dict):
         raise InputError(f"{path}: pattern meta must be a JSON object")
     return validate_patterns(values, str(path)), meta

@@ -75,6 +75,14 @@ def test_bad_inputs_give_one_line_and_status_2(tmp_path, scene_file, capsys):
         ["search", "--seed", "-1", "--maxeval", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "h.npz")],
         ["patterns", "make", "--family", "mono_gradient", "--M", "4", "--out", str(scene_file / "inside_a_file.npz")],
         ["bench", "ps", "--size", "8x8"],
+        # Numbers beyond what the generators, NLopt or torch's thread pool take.
+        ["evaluate", "--scenes", str(scene_file), "--patterns", str(good), "--seed", str(2**70)],
+        ["patterns", "make", "--family", "tri_random", "--M", "2", "--seed", str(2**40), "--out", str(tmp_path / "i.npz")],
+        ["search", "--maxeval", str(2**40), "--scenes", str(scene_file), "--out", str(tmp_path / "j.npz")],
+        ["invrender", "--scene", str(scene_file), "--threads", str(10**8)],
+        # A binary file given as a config, a pattern file given as a scene.
+        ["train", "--config", str(good), "--out", str(tmp_path / "k.npz")],
+        ["simulate", "--scene", str(good), "--patterns", str(good), "--out", str(tmp_path / "l")],
     ]
     for argv in cases:
         capsys.readouterr()
@@ -126,6 +134,12 @@ def test_evaluate_json_matches_saved_normal_maps(tmp_path, scene_file):
         ("pattern_counts = [2]\n[[search]]\nfamily = 'tri_complementary'\nM = 4\n", "not in pattern_counts"),
         ("pattern_counts = [2]\nlearned_counts = [3]\n", "not in pattern_counts"),
         ("noise_scales = [1.0]\n[solver]\nrestart_condition = -1.0\n", "restart_condition"),
+        ("train_scenes = 3\n", "list of scene files"),
+        ("test_scenes = [1, 2]\n", "list of scene files"),
+        ("[learned_seeds_at]\n4 = 7\n", "list of integer seeds"),
+        ("learned_seeds = [4294967296]\n", "seed"),
+        ("scene_size = [128]\n", "list of 2 values"),
+        ("heuristics = []\nlearned_counts = []\ninclude_olat_woodham = false\n", "nothing to compare"),
     ],
 )
 def test_compare_refuses_bad_configs(tmp_path, capsys, body, message):

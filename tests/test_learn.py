@@ -115,7 +115,7 @@ def test_bad_config_raises(tmp_path, scene_dirs):
 def test_config_files_are_type_checked(tmp_path):
     from train.config_io import load_config
 
-    for body in ("scene_size = 24", 'steps = "two"', 'scenes = "one/folder"', "learning_rate = true"):
+    for body in ("scene_size = 24", "scene_size = [128]", 'scene_size = [128, "153"]', 'steps = "two"', 'scenes = "one/folder"', "scenes = [1, 2]", "learning_rate = true"):
         path = tmp_path / "c.toml"
         path.write_text(body + "\n")
         with pytest.raises(InputError):

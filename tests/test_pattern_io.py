@@ -84,8 +84,17 @@ def test_bad_files_raise(tmp_path):
     np.savez(tmp_path / "badmeta.npz", patterns=_patterns(1), meta=np.array("[1, 2]"))
     with pytest.raises(InputError, match="JSON object"):
         load_patterns(tmp_path / "badmeta.npz")
-    np.savez(tmp_path / "notjson.npz", patterns=_patterns(1), meta=np.array("{oops"))
+    np.savez_compressed(tmp_path / "big.npz", patterns=np.random.default_rng(0).random((8, 9, 16, 3), dtype=np.float32))
+    damaged = bytearray((tmp_path / "big.npz").read_bytes())
+    damaged[200:232] = bytes(32)  # inside the compressed array
+    (tmp_path / "damaged.npz").write_bytes(bytes(damaged))
     with pytest.raises(InputError, match="not a readable"):
+        load_patterns(tmp_path / "damaged.npz")
+    (tmp_path / "empty.npz").write_bytes(b"")
+    with pytest.raises(InputError, match="not a pattern file"):
+        load_patterns(tmp_path / "empty.npz")
+    np.savez(tmp_path / "notjson.npz", patterns=_patterns(1), meta=np.array("{oops"))
+    with pytest.raises(InputError, match="not JSON"):
         load_patterns(tmp_path / "notjson.npz")
 
 

@@ -361,3 +361,37 @@ def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tm
     np.savez(path, **arrays)
     with pytest.raises(InputError, match="meta"):
         load_scene(path)
+
+
+def test_damaged_or_wrong_scene_files_give_one_clear_error(tmp_path):
+    import dataclasses
+
+    from capture_sim.scene import save_scene, validate_scene
+
+    scene = synthesize_scene("sphere", "lambertian", load_rig(), height=16, width=20, seed=0)
+    with pytest.raises(InputError, match="mask selects no pixels"):
+        validate_scene(dataclasses.replace(scene, mask=np.zeros_like(scene.mask)))
+    good = tmp_path / "good.npz"
+    save_scene(scene, good)  # compressed
+    content = good.read_bytes()
+    damaged = bytearray(content)
+    damaged[len(content) // 3 : len(content) // 3 + 64] = bytes(64)  # inside the compressed OLAT stack
+    cases = {
+        "empty.npz": (b"", "not a scene file"),
+        "text.npz": (b"olat, mask\n", "not a scene file"),
+        "truncated.npz": (content[: len(content) // 2], "not a readable scene file"),
+        "damaged.npz": (bytes(damaged), "not a readable scene file"),
+    }
+    for name, (data, message) in cases.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(InputError, match=message):
+            load_scene(tmp_path / name)
+    np.save(tmp_path / "stack.npy", scene.olat)
+    with pytest.raises(InputError, match="plain .npy"):
+        load_scene(tmp_path / "stack.npy")
+    with np.load(good) as data:
+        arrays = dict(data)
+    arrays["K_cam"] = np.array([["a", "b", "c"]] * 3)
+    np.savez(tmp_path / "strings.npz", **arrays)
+    with pytest.raises(InputError, match="expected numbers"):
+        load_scene(tmp_path / "strings.npz")

@@ -27,7 +27,7 @@ import torch
 from tqdm import tqdm
 
 from capture_sim.atomic import write_json
-from capture_sim.errors import InputError
+from capture_sim.errors import InputError, check_seed
 from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, RIG_DIR, load_rig
 from capture_sim.toml_io import load_toml
 from patterns.families import FAMILIES, PRESETS, get_family, make_patterns
@@ -168,8 +168,14 @@ class CompareConfig:
         forbidden = sorted(set(self.learned).union(*map(set, self.learned_at.values())) & set(_SET_BY_COMPARE))
         if forbidden:
             raise InputError(f"learned overrides may not set {', '.join(forbidden)} (the comparison sets them)")
+        if not (self.heuristics or self.learned_pattern_counts() or self.search or self.external or self.rerender_counts or self.include_olat_woodham):
+            raise InputError("nothing to compare: the config lists no heuristic, learned, searched or external patterns and no OLAT reference")
         if not self.learned_seeds or any(not seeds for seeds in self.learned_seeds_at.values()):
             raise InputError("learned seeds must not be empty")
+        for seed in (*self.learned_seeds, *(seed for seeds in self.learned_seeds_at.values() for seed in seeds)):
+            check_seed("learned seed", seed)
+        check_seed("eval_seed", self.eval_seed)
+        check_seed("scene_seed", self.scene_seed)
         if len({run.name for run in self.search}) != len(self.search):
             raise InputError("two [[search]] runs have the same family, M and algorithm")
         if len({item.name for item in self.external}) != len(self.external):
@@ -270,7 +276,15 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
         if not isinstance(values.get(key, {}), dict):
             raise InputError(f"{source}: {key} must be a table ([{key}])")
     if "learned_seeds_at" in values:
-        values["learned_seeds_at"] = {m: tuple(seeds) for m, seeds in _int_keys(values["learned_seeds_at"], "learned_seeds_at").items()}
+        seeds_at = _int_keys(values["learned_seeds_at"], "learned_seeds_at")
+        for count, seeds in seeds_at.items():
+            if not isinstance(seeds, (list, tuple)) or not all(isinstance(seed, int) and not isinstance(seed, bool) for seed in seeds):
+                raise InputError(f"{source}: learned_seeds_at.{count} must be a list of integer seeds, got {seeds!r}")
+        values["learned_seeds_at"] = {count: tuple(seeds) for count, seeds in seeds_at.items()}
+    for key in ("train_scenes", "test_scenes"):
+        paths = values.get(key, [])
+        if not isinstance(paths, (list, tuple)) or not all(isinstance(path, str) for path in paths):
+            raise InputError(f"{source}: {key} must be a list of scene files or folders, got {paths!r}")
     if root is not None:
         values["external"] = tuple(dataclasses.replace(item, path=_resolve(item.path, root)) for item in values["external"])
         for key in ("train_scenes", "test_scenes"):
@@ -589,6 +603,9 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     write_json(out_dir / "config.json", resolved)
     test_scenes = prepare_scenes(config.test_scenes, "test", rig, config.scene_size, config.scene_seed)
     methods, skipped, timings = collect_methods(config, rig, out_dir / "patterns", progress, logdir=out_dir / "tensorboard")
+    if not methods:
+        reasons = "; ".join(f"{entry['method']} at M = {entry['M']}: {entry['reason']}" for entry in skipped) or "the config lists no methods"
+        raise InputError(f"nothing to compare ({reasons})")
     start = time.perf_counter()
     evaluate_methods(methods, test_scenes, config, exposure_ms, progress)
     timings["evaluation_seconds"] = time.perf_counter() - start

@@ -40,7 +40,14 @@ def _checked_value(key: str, value, hint, source: str):
     if typing.get_origin(hint) is tuple:
         if not isinstance(value, (list, tuple)):
             raise InputError(f"{source}: {key} must be a list, got {value!r}")
-        return tuple(value)
+        items = typing.get_args(hint)  # (X, ...): any length; (X, Y): exactly these
+        if items and items[-1] is Ellipsis:
+            items = (items[0],) * len(value)
+        elif items and len(value) != len(items):
+            raise InputError(f"{source}: {key} must be a list of {len(items)} values, got {value!r}")
+        if not items:
+            return tuple(value)
+        return tuple(_checked_value(f"{key}[{index}]", item, item_hint, source) for index, (item, item_hint) in enumerate(zip(value, items)))
     expected = _SCALARS.get(hint)
     # bool is an int subclass: accept it only where a bool is expected.
     if expected is not None and (not isinstance(value, expected) or (isinstance(value, bool) and hint is not bool)):

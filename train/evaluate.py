@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from capture_sim.errors import InputError
+from capture_sim.errors import InputError, check_seed
 from capture_sim.simulator import auto_exposure, sensor
 from reconstruct.metrics import angular_error_deg, normal_metrics
 from reconstruct.photometric_stereo import PSConfig, PSResult, solve_ps
@@ -41,6 +41,7 @@ class EvalSettings:
             raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
         if self.noise_scale < 0:
             raise InputError("noise scale must be >= 0")
+        check_seed("seed", self.seed)
 
 
 @dataclass(frozen=True, eq=False)

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from capture_sim.atomic import save_npy, write_json
-from capture_sim.errors import InputError
+from capture_sim.errors import InputError, check_seed
 from capture_sim.geometry import pixel_rays
 from capture_sim.rig import DEFAULT_RIG, load_rig
 from capture_sim.scene import load_scene, rig_for_scene
@@ -46,6 +46,8 @@ from train.simulate_command import parse_exposure, resolve_exposure
 GEOMETRY_CHOICES = ("auto", "near", "far")
 NOISE_CHOICES = ("default", "off")
 MAX_BASIS = 8
+MAX_THREADS = 1024
+"""Largest --threads (torch crashes on absurd thread counts instead of refusing them)."""
 
 
 @dataclass(frozen=True)
@@ -110,10 +112,9 @@ class InvRenderConfig:
             raise InputError(f"geometry must be one of {', '.join(GEOMETRY_CHOICES)}, got {self.geometry!r}")
         if self.batch_pixels < 1 or self.tv_weight < 0:
             raise InputError("batch_pixels must be positive and tv_weight non-negative")
-        if self.seed < 0:
-            raise InputError(f"--seed must be non-negative, got {self.seed}")
-        if self.threads < 0:
-            raise InputError(f"--threads must be 0 (torch's default) or positive, got {self.threads}")
+        check_seed("--seed", self.seed)
+        if not 0 <= self.threads <= MAX_THREADS:
+            raise InputError(f"--threads must be 0 (torch's default) or 1..{MAX_THREADS}, got {self.threads}")
         parse_exposure(str(self.exposure))
 
     def to_dict(self) -> dict:

@@ -20,7 +20,7 @@ import torch
 from tqdm import tqdm
 
 from capture_sim.atomic import atomic_path, write_json
-from capture_sim.errors import InputError
+from capture_sim.errors import InputError, check_seed
 from capture_sim.rig import DEFAULT_RIG, load_rig
 from patterns.families import FAMILIES, make_patterns
 from patterns.io import check_patterns_match_rig, load_patterns, save_patterns
@@ -106,8 +106,10 @@ class TrainConfig:
             raise InputError("learning_rate must be > 0 and final_lr_fraction in (0, 1]")
         if self.noise_scale < 0 or self.rerender_weight < 0:
             raise InputError("noise_scale and rerender_weight must be >= 0")
-        if self.checkpoint_every < 1 or self.val_every < 0 or self.seed < 0 or self.scene_seed < 0:
-            raise InputError("checkpoint_every must be >= 1; val_every, seed and scene_seed >= 0")
+        if self.checkpoint_every < 1 or self.val_every < 0:
+            raise InputError("checkpoint_every must be >= 1 and val_every >= 0")
+        check_seed("seed", self.seed)
+        check_seed("scene_seed", self.scene_seed)
         if self.init != "auto" and self.init not in FAMILIES and Path(self.init).suffix not in (".npz", ".npy"):
             raise InputError(f"init must be 'auto', a family ({', '.join(FAMILIES)}) or a pattern file, got {self.init!r}")
 

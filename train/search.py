@@ -35,7 +35,7 @@ import torch
 from tqdm import tqdm
 
 from capture_sim.atomic import write_json, write_text
-from capture_sim.errors import InputError
+from capture_sim.errors import InputError, check_seed
 from capture_sim.rig import DEFAULT_RIG, load_rig
 from patterns.families import PRESETS, default_vector, get_family
 from patterns.io import save_patterns
@@ -50,6 +50,8 @@ ALGORITHMS = ("LN_BOBYQA", "LN_COBYLA", "LN_SBPLX", "GN_CRS2_LM", "GN_ESCH", "GN
 """NLopt algorithms `displex search` accepts: local derivative-free (LN), global (GN), gradient-based (LD)."""
 
 GRADIENT_ALGORITHMS = frozenset(name for name in ALGORITHMS if name.startswith("LD_"))
+MAX_EVALUATIONS = 2**31 - 1
+"""Largest ``maxeval`` (NLopt stores it in a C int)."""
 
 _RESULT_NAMES = {
     nlopt.SUCCESS: "success",
@@ -107,10 +109,10 @@ class SearchConfig:
             raise InputError(f"unknown NLopt algorithm {self.algorithm!r}; algorithms: {', '.join(ALGORITHMS)}")
         if self.start not in PRESETS:
             raise InputError(f"start must be one of {', '.join(PRESETS)}, got {self.start!r}")
-        if self.maxeval < 1:
-            raise InputError(f"maxeval must be >= 1, got {self.maxeval}")
-        if self.seed < 0 or self.scene_seed < 0:
-            raise InputError("seed and scene_seed must be >= 0")
+        if not 1 <= self.maxeval <= MAX_EVALUATIONS:
+            raise InputError(f"maxeval must be in [1, {MAX_EVALUATIONS}], got {self.maxeval}")
+        check_seed("seed", self.seed)
+        check_seed("scene_seed", self.scene_seed)
         if self.maxtime is not None and not self.maxtime >= 0:
             raise InputError(f"maxtime must be >= 0 seconds (0 = no limit), got {self.maxtime}")
         if self.xtol_rel < 0 or self.ftol_abs < 0 or not 0 < self.initial_step <= 1:

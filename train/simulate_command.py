@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from capture_sim.atomic import save_npy, write_json
-from capture_sim.errors import InputError
+from capture_sim.errors import InputError, check_seed
 from capture_sim.rig import DEFAULT_RIG, Rig, load_rig
 from capture_sim.scene import Scene, load_scene, rig_for_scene
 from capture_sim.simulator import auto_exposure, display_emission, light_transport, noise_free_radiance, simulate
@@ -61,6 +61,7 @@ def resolve_exposure(exposure, patterns: torch.Tensor, scene: Scene, rig: Rig) -
 
 def run_simulate(config: SimulateConfig) -> dict:
     """Simulate, write ``captures.npy``, 16-bit PNGs, ``contact_sheet.png`` and ``meta.json``; return the meta."""
+    check_seed("--seed", config.seed)
     scene = load_scene(config.scene)
     rig = rig_for_scene(load_rig(config.rig), scene)
     pattern_values, pattern_meta = load_patterns(config.patterns)

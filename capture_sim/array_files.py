@@ -1,0 +1,46 @@
+"""Reading .npy and .npz array files, with one clear error for anything unreadable."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from capture_sim.errors import InputError
+
+_NPY_MAGIC = b"\x93NUMPY"
+_ZIP_MAGIC = b"PK"
+
+
+def read_arrays(path: str | Path, what: str, keys=None) -> np.ndarray | dict[str, np.ndarray]:
+    """Read a .npy file (one array) or a .npz file (named arrays), eagerly and without pickles.
+
+    Args:
+        path: the file; the format is told by its first bytes, not its name.
+        what: what the file should be, for messages (e.g. ``"scene"``).
+        keys: for a .npz, the names to read (absent ones are skipped); None reads all.
+
+    Returns:
+        The array of a .npy file, or a dict of the arrays of a .npz file.
+
+    Raises:
+        InputError: the file is missing, neither format, damaged (truncated, bad compression) or
+            holds object arrays (pickles are never loaded).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{what} file not found: {path}")
+    try:
+        with path.open("rb") as handle:
+            magic = handle.read(len(_NPY_MAGIC))
+        if magic.startswith(_NPY_MAGIC):
+            return np.load(path, allow_pickle=False)
+        if magic.startswith(_ZIP_MAGIC):
+            with np.load(path, allow_pickle=False) as data:
+                names = data.files if keys is None else [key for key in keys if key in data.files]
+                return {name: data[name] for name in names}
+    except Exception as err:
+        # A damaged file fails in many ways: a truncated member (EOFError, ValueError), a broken
+        # archive (BadZipFile), bad compressed data (zlib.error), a garbled array header
+        # (SyntaxError, tokenize.TokenError), a header claiming a huge shape (MemoryError).
+        raise InputError(f"{path}: not a readable {what} file ({type(err).__name__}: {err})") from None
+    raise InputError(f"{path}: not a {what} file (neither .npz nor .npy)")
