@@ -242,8 +242,10 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
         )
     except KeyError as missing:
         raise InputError(f"rig {default_name}: missing key {missing}") from None
-    except (TypeError, ValueError) as err:
-        raise InputError(f"rig {default_name}: {err}") from None
+    except (TypeError, ValueError, OverflowError, ZeroDivisionError, IndexError) as err:
+        # Values of the wrong kind or size: a list where a number goes, inf where a whole number
+        # goes, a zero aspect ratio, a one-element offset.
+        raise InputError(f"rig {default_name}: {err or type(err).__name__}") from None
 
 
 def panel_size(panel_pixels, name: str = "panel_pixels") -> tuple[int, int]:
@@ -297,6 +299,12 @@ def panel_positions(
     """
     if rows < 1 or cols < 1:
         raise InputError(f"panel grid must be at least 1 x 1, got {rows} x {cols}")
+    if not (len(aspect) == 2 and all(math.isfinite(side) and side > 0 for side in aspect)):
+        raise InputError(f"panel aspect must be two positive numbers (width, height), got {aspect!r}")
+    if not (len(offset) == 2 and all(math.isfinite(shift) for shift in offset)):
+        raise InputError(f"panel offset must be two numbers (x, y) in metres, got {offset!r}")
+    if not (math.isfinite(diagonal_inch) and diagonal_inch > 0):
+        raise InputError(f"panel diagonal_inch must be positive, got {diagonal_inch!r}")
     diagonal = diagonal_inch * 0.0254
     aw, ah = aspect
     width, height = diagonal * aw / math.hypot(aw, ah), diagonal * ah / math.hypot(aw, ah)

@@ -239,7 +239,7 @@ def _read_manifest(frames_dir: Path) -> dict:
         raise InputError(f"no {MANIFEST_NAME} in {frames_dir} (not an exported frame folder, or an interrupted export)")
     try:
         manifest = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as err:
+    except (OSError, ValueError, RecursionError) as err:  # RecursionError: absurdly nested JSON
         raise InputError(f"{path}: not a readable manifest ({err})") from None
     required = ("format", "rows", "cols", "num_patterns", "panel_pixels", "bit_depth", "columns_mirrored", "frames", "patterns")
     missing = [key for key in required if not isinstance(manifest, dict) or key not in manifest]

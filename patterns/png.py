@@ -78,6 +78,8 @@ def decode_png(data: bytes, name: str = "PNG") -> np.ndarray:
             raise InputError(f"{name}: corrupt PNG chunk {kind!r}")
         position += 12 + length
         if kind == b"IHDR":
+            if length != 13:
+                raise InputError(f"{name}: corrupt PNG header")
             header = struct.unpack(">IIBBBBB", body)
         elif kind == b"IDAT":
             compressed.append(body)

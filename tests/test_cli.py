@@ -93,6 +93,29 @@ def test_bad_inputs_give_one_line_and_status_2(tmp_path, scene_file, capsys):
         assert not (tmp_path / name).exists() or not any((tmp_path / name).iterdir()), f"half-written output in {name}"
 
 
+def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeypatch):
+    text = (load_rig.__globals__["RIG_DIR"] / "panel-55in-4x8.toml").read_text()
+    for name, (old, new) in {
+        "aspect": ("aspect = [16.0, 9.0]", "aspect = [0.0, 0.0]"),
+        "offset": ("offset = [0.03, -0.25]", "offset = [0.03]"),
+        "bits": ("bit_depth = 12", "bit_depth = inf"),
+    }.items():
+        assert old in text, (name, old)
+        (tmp_path / f"{name}.toml").write_text(text.replace(old, new))
+        capsys.readouterr()
+        assert run(["patterns", "make", "--family", "olat", "--M", "2", "--rig", str(tmp_path / f"{name}.toml"), "--out", str(tmp_path / "p.npz")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("displex: error: rig") and "\n" not in err, err
+
+    def exhausted(*args, **kwargs):
+        raise RuntimeError("[enforce fail at alloc_cpu.cpp:127] DefaultCPUAllocator: can't allocate memory: you tried to allocate 80000000000 bytes.")
+
+    monkeypatch.setattr("patterns.families.make_patterns", exhausted)
+    capsys.readouterr()
+    assert run(["patterns", "make", "--family", "olat", "--M", "2", "--out", str(tmp_path / "p.npz")]) == 2
+    assert capsys.readouterr().err.strip().startswith("displex: error: out of memory")
+
+
 def test_patterns_make_and_export_round_trip(tmp_path):
     patterns = tmp_path / "p.npz"
     assert run(["patterns", "make", "--family", "tri_complementary", "--M", "2", "--out", str(patterns)]) == 0

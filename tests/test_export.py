@@ -176,6 +176,21 @@ def test_import_refuses_tampered_or_incomplete_folders(tmp_path, small_rig):
     (tmp_path / "manifest.json").write_text("{not json")
     with pytest.raises(InputError, match="not a readable manifest"):
         import_frames(tmp_path)
+    (tmp_path / "manifest.json").write_text("[" * 100_000 + "]" * 100_000)  # nested past Python's recursion limit
+    with pytest.raises(InputError, match="not a readable manifest"):
+        import_frames(tmp_path)
+
+
+def test_png_with_a_short_header_chunk_is_refused(tmp_path):
+    import struct
+    import zlib
+
+    from patterns.png import decode_png
+
+    short = b"IHDR" + struct.pack(">II", 4, 4)  # 8 of the 13 header bytes
+    data = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 8) + short + struct.pack(">I", zlib.crc32(short) & 0xFFFFFFFF)
+    with pytest.raises(InputError, match="corrupt PNG header"):
+        decode_png(data, "frame.png")
 
 
 def test_import_refuses_frame_names_outside_the_folder(tmp_path, small_rig):

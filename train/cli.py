@@ -323,6 +323,12 @@ def run(argv: list[str] | None = None) -> int:
     except OSError as err:
         print(f"displex: error: {err.strerror or err}: {err.filename}", file=sys.stderr)
         return 2
+    except (MemoryError, RuntimeError) as err:
+        # torch reports a failed CPU allocation as a RuntimeError; anything else is a bug.
+        if not isinstance(err, MemoryError) and "can't allocate memory" not in str(err):
+            raise
+        print("displex: error: out of memory: the inputs (image size, pixel or pattern counts, panel resolution) need more memory than this machine has", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -642,7 +642,7 @@ def _scene_set_matches(index_path: Path, rig, config: CompareConfig) -> bool:
     except (OSError, ValueError):
         return False
     wanted = {"rig": rig.name, "height": config.scene_size[0], "width": config.scene_size[1], "seed": config.scene_seed}
-    return all(index.get(key) == value for key, value in wanted.items())
+    return isinstance(index, dict) and all(index.get(key) == value for key, value in wanted.items())
 
 
 def run_demo(out_dir: Path, progress: bool = True, config_path: Path | None = None, steps: int | None = None) -> dict:
