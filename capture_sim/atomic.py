@@ -22,6 +22,10 @@ def atomic_path(path: str | Path, suffix: str = "", sync: bool = False):
     it costs a disk flush per file).
     """
     path = Path(path)
+    if path.exists() and not path.is_file():
+        # A rename would silently replace a device, FIFO or socket (e.g. /dev/null run as root),
+        # and a folder would fail with the temporary file's name.
+        raise InputError(f"cannot write {path}: it exists and is not a regular file")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or ".tmp", dir=path.parent)

@@ -83,6 +83,9 @@ def test_bad_inputs_give_one_line_and_status_2(tmp_path, scene_file, capsys):
         # A binary file given as a config, a pattern file given as a scene.
         ["train", "--config", str(good), "--out", str(tmp_path / "k.npz")],
         ["simulate", "--scene", str(good), "--patterns", str(good), "--out", str(tmp_path / "l")],
+        # A folder where a file goes; a non-finite weight.
+        ["patterns", "make", "--family", "olat", "--M", "2", "--out", str(tmp_path)],
+        ["train", "--rerender-weight", "nan", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "m.npz")],
     ]
     for argv in cases:
         capsys.readouterr()

@@ -102,10 +102,10 @@ class TrainConfig:
             raise InputError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if self.loss not in LOSSES:
             raise InputError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
-        if not self.learning_rate > 0 or not 0 < self.final_lr_fraction <= 1:
-            raise InputError("learning_rate must be > 0 and final_lr_fraction in (0, 1]")
-        if self.noise_scale < 0 or self.rerender_weight < 0:
-            raise InputError("noise_scale and rerender_weight must be >= 0")
+        if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)) or not 0 < self.final_lr_fraction <= 1:
+            raise InputError("learning_rate must be a finite number > 0 and final_lr_fraction in (0, 1]")
+        if not (0 <= self.noise_scale < math.inf and 0 <= self.rerender_weight < math.inf):
+            raise InputError("noise_scale and rerender_weight must be finite numbers >= 0")
         if self.checkpoint_every < 1 or self.val_every < 0:
             raise InputError("checkpoint_every must be >= 1 and val_every >= 0")
         check_seed("seed", self.seed)

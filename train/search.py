@@ -113,11 +113,11 @@ class SearchConfig:
             raise InputError(f"maxeval must be in [1, {MAX_EVALUATIONS}], got {self.maxeval}")
         check_seed("seed", self.seed)
         check_seed("scene_seed", self.scene_seed)
-        if self.maxtime is not None and not self.maxtime >= 0:
+        if self.maxtime is not None and not 0 <= self.maxtime < math.inf:
             raise InputError(f"maxtime must be >= 0 seconds (0 = no limit), got {self.maxtime}")
-        if self.xtol_rel < 0 or self.ftol_abs < 0 or not 0 < self.initial_step <= 1:
+        if not (0 <= self.xtol_rel < math.inf and 0 <= self.ftol_abs < math.inf) or not 0 < self.initial_step <= 1:
             raise InputError("xtol_rel and ftol_abs must be >= 0 and initial_step in (0, 1]")
-        if self.noise_scale < 0 or self.pixels_per_scene < 0:
+        if not 0 <= self.noise_scale < math.inf or self.pixels_per_scene < 0:
             raise InputError("noise_scale and pixels_per_scene must be >= 0")
         if not self.sharpness > 0 or not math.isfinite(self.sharpness):
             raise InputError(f"sharpness must be positive and finite, got {self.sharpness}")
