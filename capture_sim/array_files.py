@@ -1,6 +1,7 @@
 """Reading .npy and .npz array files, with one clear error for anything unreadable."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -44,3 +45,20 @@ def read_arrays(path: str | Path, what: str, keys=None) -> np.ndarray | dict[str
         # (SyntaxError, tokenize.TokenError), a header claiming a huge shape (MemoryError).
         raise InputError(f"{path}: not a readable {what} file ({type(err).__name__}: {err})") from None
     raise InputError(f"{path}: not a {what} file (neither .npz nor .npy)")
+
+
+def read_meta(arrays: dict, path: str | Path, what: str) -> dict:
+    """The JSON object stored as the ``meta`` string of a .npz read by ``read_arrays`` ({} if none).
+
+    Raises:
+        InputError: ``meta`` is not JSON, or not a JSON object.
+    """
+    if "meta" not in arrays:
+        return {}
+    try:
+        meta = json.loads(str(arrays["meta"]))
+    except ValueError as err:
+        raise InputError(f"{path}: {what} meta is not JSON ({err})") from None
+    if not isinstance(meta, dict):
+        raise InputError(f"{path}: {what} meta must be a JSON object, got {type(meta).__name__}")
+    return meta

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from capture_sim.array_files import read_arrays
+from capture_sim.array_files import read_arrays, read_meta
 from capture_sim.atomic import save_npz
 from capture_sim.errors import InputError, check_array
 from capture_sim.geometry import points_from_depth
@@ -123,15 +123,11 @@ def load_scene(path: str | Path) -> Scene:
     arrays = read_arrays(path, "scene", keys=(*_ARRAY_KEYS, "meta"))
     if isinstance(arrays, np.ndarray):
         raise InputError(f"{path}: a plain .npy array, but a scene is an .npz of named arrays (DESIGN section 7)")
-    try:
-        meta = json.loads(str(arrays.pop("meta"))) if "meta" in arrays else {}
-    except ValueError as err:
-        raise InputError(f"{path}: scene meta is not JSON ({err})") from None
+    meta = read_meta(arrays, path, "scene")
+    arrays.pop("meta", None)
     for required in ("olat", "mask", "K_cam", "light_positions"):
         if required not in arrays:
             raise InputError(f"{path}: scene is missing required array '{required}'")
-    if not isinstance(meta, dict):
-        raise InputError(f"{path}: meta must be a JSON object, got {type(meta).__name__}")
     meta.setdefault("name", path.stem)
     meta["file"] = str(path)  # in memory only: outputs are named after the file the user gave
     return Scene(meta=meta, **arrays)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from capture_sim.array_files import read_arrays
+from capture_sim.array_files import read_arrays, read_meta
 from capture_sim.atomic import write_bytes
 from capture_sim.errors import InputError, check_array
 
@@ -71,21 +71,11 @@ def load_patterns(path: str | Path) -> tuple[np.ndarray, dict]:
     """
     path = Path(path)
     contents = read_arrays(path, "pattern", keys=("patterns", "meta"))
-    meta: dict = {}
     if isinstance(contents, np.ndarray):
-        values = contents
-    else:
-        if "patterns" not in contents:
-            raise InputError(f"{path}: pattern .npz has no 'patterns' array")
-        values = contents["patterns"]
-        if "meta" in contents:
-            try:
-                meta = json.loads(str(contents["meta"]))
-            except ValueError as err:
-                raise InputError(f"{path}: pattern meta is not JSON ({err})") from None
-    if not isinstance(meta, dict):
-        raise InputError(f"{path}: pattern meta must be a JSON object")
-    return validate_patterns(values, str(path)), meta
+        return validate_patterns(contents, str(path)), {}
+    if "patterns" not in contents:
+        raise InputError(f"{path}: pattern .npz has no 'patterns' array")
+    return validate_patterns(contents["patterns"], str(path)), read_meta(contents, path, "pattern")
 
 
 def check_patterns_match_rig(patterns, rows: int, cols: int) -> None:

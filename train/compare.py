@@ -278,7 +278,7 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
     if "learned_seeds_at" in values:
         seeds_at = _int_keys(values["learned_seeds_at"], "learned_seeds_at")
         for count, seeds in seeds_at.items():
-            if not isinstance(seeds, (list, tuple)) or not all(isinstance(seed, int) and not isinstance(seed, bool) for seed in seeds):
+            if not isinstance(seeds, (list, tuple)):  # the seeds themselves: CompareConfig (check_seed)
                 raise InputError(f"{source}: learned_seeds_at.{count} must be a list of integer seeds, got {seeds!r}")
         values["learned_seeds_at"] = {count: tuple(seeds) for count, seeds in seeds_at.items()}
     for key in ("train_scenes", "test_scenes"):
@@ -604,7 +604,8 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     test_scenes = prepare_scenes(config.test_scenes, "test", rig, config.scene_size, config.scene_seed)
     methods, skipped, timings = collect_methods(config, rig, out_dir / "patterns", progress, logdir=out_dir / "tensorboard")
     if not methods:
-        reasons = "; ".join(f"{entry['method']} at M = {entry['M']}: {entry['reason']}" for entry in skipped) or "the config lists no methods"
+        # CompareConfig refuses configs that list nothing, so every listed method was skipped.
+        reasons = "; ".join(f"{entry['method']} at M = {entry['M']}: {entry['reason']}" for entry in skipped)
         raise InputError(f"nothing to compare ({reasons})")
     start = time.perf_counter()
     evaluate_methods(methods, test_scenes, config, exposure_ms, progress)
