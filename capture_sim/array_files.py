@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture_sim.errors import InputError
+from capture_sim.errors import InputError, require_file
 
 _NPY_MAGIC = b"\x93NUMPY"
 _ZIP_MAGIC = b"PK"
@@ -27,9 +27,7 @@ def read_arrays(path: str | Path, what: str, keys=None) -> np.ndarray | dict[str
         InputError: the file is missing, neither format, damaged (truncated, bad compression) or
             holds object arrays (pickles are never loaded).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{what} file not found: {path}")
+    path = require_file(path, what)
     try:
         with path.open("rb") as handle:
             magic = handle.read(len(_NPY_MAGIC))

@@ -5,6 +5,7 @@ else is a bug and keeps its traceback.
 """
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
@@ -18,6 +19,20 @@ class InputError(ValueError):
 MAX_SEED = 2**32 - 1
 """Largest seed accepted. Seeds derived from it (seed * 1000 + scene index and the like) stay
 well inside the 64-bit range of torch's and numpy's generators."""
+
+
+def require_file(path, what: str) -> Path:
+    """``path`` as a Path if it names an existing regular file, else one ``InputError`` line that
+    says what is wrong: missing, a folder (a common slip: a scene folder where one file goes), or
+    something else (a device, a socket)."""
+    path = Path(path)
+    if path.is_file():
+        return path
+    if path.is_dir():
+        raise InputError(f"{path} is a folder, not a {what} file")
+    if path.exists():
+        raise InputError(f"{path} is not a regular file (expected a {what} file)")
+    raise InputError(f"{what} file not found: {path}")
 
 
 def check_seed(name: str, seed) -> int:

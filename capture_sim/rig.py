@@ -108,6 +108,11 @@ class Falloff:
             )
 
 
+GAMMA_RANGE = (0.1, 10.0)
+"""Accepted display gammas. Real displays are near 2.2; a value far outside (22 for 2.2) darkens
+every set value below 1 to nothing without failing anywhere downstream."""
+
+
 @dataclass(frozen=True, eq=False)
 class Rig:
     """A display-camera rig (DESIGN sections 2 and 3).
@@ -149,8 +154,13 @@ class Rig:
         check_array(f"rig {self.name}: backlight", backlight, positions.shape[:2], value_range=(0.0, 1.0))
         object.__setattr__(self, "light_positions", positions)
         object.__setattr__(self, "backlight", backlight)
-        if not (math.isfinite(self.gamma) and math.isfinite(self.scale) and self.gamma > 0 and self.scale > 0):
-            raise InputError(f"rig {self.name}: gamma and scale must be positive and finite")
+        if not (math.isfinite(self.scale) and self.scale > 0):
+            raise InputError(f"rig {self.name}: display scale must be positive and finite, got {self.scale!r}")
+        if not GAMMA_RANGE[0] <= self.gamma <= GAMMA_RANGE[1]:
+            raise InputError(
+                f"rig {self.name}: display gamma must lie in [{GAMMA_RANGE[0]:g}, {GAMMA_RANGE[1]:g}] "
+                f"(displays: about 1.8 to 2.6), got {self.gamma!r}"
+            )
         if self.exposure is not None and not (self.exposure > 0 and math.isfinite(self.exposure)):
             raise InputError(f"rig {self.name}: exposure must be positive or auto")
         if self.bit_depth is not None and not 1 <= self.bit_depth <= 24:
@@ -297,8 +307,8 @@ def panel_positions(
     Returns:
         (R, C, 3) float64 positions in metres, camera frame.
     """
-    if rows < 1 or cols < 1:
-        raise InputError(f"panel grid must be at least 1 x 1, got {rows} x {cols}")
+    if not all(isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n >= 1 for n in (rows, cols)):
+        raise InputError(f"panel grid must be whole numbers of at least 1 x 1, got {rows!r} x {cols!r}")
     if not (len(aspect) == 2 and all(math.isfinite(side) and side > 0 for side in aspect)):
         raise InputError(f"panel aspect must be two positive numbers (width, height), got {aspect!r}")
     if not (len(offset) == 2 and all(math.isfinite(shift) for shift in offset)):

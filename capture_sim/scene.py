@@ -81,11 +81,21 @@ def validate_scene(scene: Scene) -> None:
         raise InputError(f"{name}: olat must be float16 or float32, got {scene.olat.dtype}")
     if float(scene.olat.min(initial=0.0)) < 0:
         raise InputError(f"{name}: olat has negative radiance")
+    if not float(scene.olat.max(initial=0.0)) > 0:
+        # Every result from such a scene (learned patterns, errors, exposures) would be meaningless.
+        raise InputError(f"{name}: every OLAT value is 0: no superpixel lights the scene")
     check_array(f"{name}: mask", scene.mask, (height, width))
     if scene.mask.dtype != np.bool_:
         raise InputError(f"{name}: mask must be bool, got {scene.mask.dtype}")
     if not scene.mask.any():
         raise InputError(f"{name}: mask selects no pixels")
+    for key in ("K_cam", "light_positions", "normal", "depth", "diffuse", "specular"):
+        # A bool or integer array where metres or radiance go is a mistake (a mask saved as depth,
+        # depth in millimetres), not something to convert silently; intrinsics may be integers.
+        value = getattr(scene, key)
+        kinds = "iuf" if key == "K_cam" else "f"
+        if value is not None and np.asarray(value).dtype.kind not in kinds:
+            raise InputError(f"{name}: {key} must hold {'numbers' if key == 'K_cam' else 'floating-point values'}, got dtype {np.asarray(value).dtype}")
     check_array(f"{name}: K_cam", scene.K_cam, (3, 3))
     intrinsics = np.asarray(scene.K_cam, dtype=np.float64)
     if not (intrinsics[0, 0] > 0 and intrinsics[1, 1] > 0 and np.array_equal(intrinsics[2], [0.0, 0.0, 1.0])):

@@ -246,7 +246,11 @@ def simulate(
     exposure = auto_exposure(radiance) if exposure == "auto" else exposure
     if not exposure > 0 or not np.isfinite(exposure):
         raise InputError(f"exposure must be a positive number or 'auto', got {exposure}")
+    emission, exposed = exposure * emitted, exposure * radiance
+    if not bool(torch.isfinite(emission.detach()).all() and torch.isfinite(exposed.detach()).all()):
+        # Past the dtype's range the exposed radiance is inf, and inf * 0 (unlit pixels) is NaN.
+        raise InputError(f"exposure {exposure:g} is too large: the exposed radiance overflows {radiance.dtype}; use a smaller value or 'auto'")
     noise_model = rig.noise if noise == "rig" else noise
     bits = rig.bit_depth if bit_depth == "rig" else bit_depth
-    captures = sensor(exposure * radiance, noise_model, bits, generator)
-    return Capture(captures=captures, emission=exposure * emitted, exposure=exposure)
+    captures = sensor(exposed, noise_model, bits, generator)
+    return Capture(captures=captures, emission=emission, exposure=exposure)

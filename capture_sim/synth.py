@@ -77,6 +77,12 @@ def synthesize_scene(
 
     surface = make_shape(shape, seed=seed, distance=rig.working_distance)
     hits = cast_camera_rays(surface, K_cam, height, width)
+    if not bool(hits.mask.any()):
+        # Pixel centres can all miss an object at a tiny size (or a rig whose camera looks away).
+        raise InputError(
+            f"the {shape} covers no pixel centre of a {height} x {width} image with rig {rig.name}'s camera; "
+            "use a larger image size (default 128 x 153)"
+        )
     brdf = make_material(material, hits.points, seed=seed, albedo=albedo)
 
     lights = rig.lights(dtype=torch.float64)

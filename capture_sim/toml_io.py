@@ -4,7 +4,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from capture_sim.errors import InputError
+from capture_sim.errors import InputError, require_file
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -14,9 +14,7 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 
 def load_toml(path: str | Path) -> dict:
     """Parse a TOML file into a dict; a missing or malformed file raises ``InputError``."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"file not found: {path}")
+    path = require_file(path, "TOML")
     try:
         with path.open("rb") as handle:
             return tomllib.load(handle)

@@ -226,7 +226,7 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
         listed = np.asarray(manifest["patterns"], dtype=np.float64)
     except (TypeError, ValueError):
         raise InputError(f"{frames_dir}: manifest patterns are not an M x R x C x 3 array of numbers") from None
-    if listed.shape != patterns.shape or np.abs(listed - patterns).max() > 0.5 / levels + 1e-6:
+    if listed.shape != patterns.shape or not np.isfinite(listed).all() or np.abs(listed - patterns).max() > 0.5 / levels + 1e-6:
         raise InputError(f"{frames_dir}: the frames do not show the pattern values listed in the manifest")
     if rig is not None:
         check_patterns_match_rig(patterns, rig.rows, rig.cols)

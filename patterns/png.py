@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from capture_sim.atomic import write_bytes
-from capture_sim.errors import InputError
+from capture_sim.errors import InputError, require_file
 
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _COLOUR_TYPES = {1: 0, 3: 2}  # channels -> PNG colour type (0 grey, 2 RGB)
@@ -115,7 +115,5 @@ def write_png(path: str | Path, image: np.ndarray, level: int = 2) -> None:
 
 def read_png(path: str | Path) -> np.ndarray:
     """Read a PNG written by ``write_png``: (H, W) or (H, W, 3) uint8 or uint16."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"PNG file not found: {path}")
+    path = require_file(path, "PNG")
     return decode_png(path.read_bytes(), str(path))

@@ -96,6 +96,38 @@ def test_bad_inputs_give_one_line_and_status_2(tmp_path, scene_file, capsys):
         assert not (tmp_path / name).exists() or not any((tmp_path / name).iterdir()), f"half-written output in {name}"
 
 
+def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
+    """Inputs that used to pass silently or with a misleading message: each error names the problem."""
+    good, _ = _pattern_file(tmp_path, "random", load_rig())
+    with np.load(scene_file) as data:
+        arrays = dict(data)
+    variants = {"dark": {"olat": np.zeros_like(arrays["olat"])}, "bool_depth": {"depth": arrays["mask"].copy()},
+                "mm_depth": {"depth": (arrays["depth"] * 1000).astype(np.uint16)}}
+    for name, changes in variants.items():
+        np.savez(tmp_path / f"{name}.npz", **{**arrays, **changes})
+    rig_text = (load_rig.__globals__["RIG_DIR"] / "panel-55in-4x8.toml").read_text()
+    for name, (old, new) in {"gamma": ("gamma = 2.2", "gamma = 22.0"), "rows": ("rows = 4", "rows = 4.5")}.items():
+        (tmp_path / f"{name}.toml").write_text(rig_text.replace(old, new))
+    (tmp_path / "inf_noise.toml").write_text("noise_scale = inf\n")
+    simulate = ["simulate", "--patterns", str(good), "--out", str(tmp_path / "out"), "--scene"]
+    cases = [
+        (simulate + [str(scene_file.parent)], "is a folder, not a scene file"),
+        (simulate + [str(tmp_path / "dark.npz")], "every OLAT value is 0"),
+        (simulate + [str(tmp_path / "bool_depth.npz")], "depth must hold floating-point values"),
+        (simulate + [str(tmp_path / "mm_depth.npz")], "depth must hold floating-point values"),
+        (simulate + [str(scene_file), "--exposure", "1e300"], "exposure 1e+300 is too large"),
+        (simulate + [str(scene_file), "--rig", str(tmp_path / "gamma.toml")], "display gamma must lie in"),
+        (simulate + [str(scene_file), "--rig", str(tmp_path / "rows.toml")], "panel grid must be whole numbers"),
+        (["train", "--config", str(tmp_path / "inf_noise.toml"), "--out", str(tmp_path / "t.npz")], "noise_scale must be a finite number"),
+        (["scenes", "synth", "--out", str(tmp_path / "tiny"), "--size", "2x2"], "covers no pixel centre of a 2 x 2 image"),
+    ]
+    for argv, message in cases:
+        capsys.readouterr()
+        assert run(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()[-1]  # after any progress bar's line
+        assert err.startswith("displex: error:") and message in err, (argv, err)
+
+
 def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeypatch):
     text = (load_rig.__globals__["RIG_DIR"] / "panel-55in-4x8.toml").read_text()
     for name, (old, new) in {
@@ -156,6 +188,7 @@ def test_evaluate_json_matches_saved_normal_maps(tmp_path, scene_file):
     [
         ("heuristics = ['checkerboard']\n", "unknown pattern family"),
         ("[[external]]\nname = 'gone'\npath = 'patterns/data/ddps/no_such_file.npy'\n", "not found"),
+        ("[[external]]\npath = 'patterns/data/ddps/optimized_tri_random_2.npy'\n", "missing key(s) name"),
         ("pattern_counts = [2, 0]\n", "positive integers"),
         ("pattern_counts = [2]\n[[search]]\nfamily = 'tri_complementary'\nM = 4\n", "not in pattern_counts"),
         ("pattern_counts = [2]\nlearned_counts = [3]\n", "not in pattern_counts"),

@@ -168,6 +168,10 @@ def test_import_refuses_tampered_or_incomplete_folders(tmp_path, small_rig):
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(InputError, match="do not show"):
         import_frames(tmp_path)
+    manifest["patterns"][0][0][0] = [float("nan")] * 3  # NaN compares false with every tolerance
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(InputError, match="do not show"):
+        import_frames(tmp_path)
 
     del manifest["frames"]
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))

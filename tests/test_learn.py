@@ -96,8 +96,15 @@ def test_damaged_or_foreign_checkpoints_are_refused(tmp_path, scene_dirs):
     torch.save({"logits": torch.zeros(3)}, tmp_path / "foreign.ckpt.pt")
     with pytest.raises(InputError, match="not a displex training checkpoint"):
         train_patterns(config, tmp_path / "foreign.npz", progress=False)
-    with pytest.raises(InputError, match="another config"):
-        train_patterns(_config(scene_dirs, steps=3, val_every=0), tmp_path / "a.npz", progress=False)
+    longer = _config(scene_dirs, steps=3, val_every=0)
+    with pytest.raises(InputError, match=r"another config \(steps differ\); pass --fresh"):
+        train_patterns(longer, tmp_path / "a.npz", progress=False)
+    # A caller that owns the folder replaces a stale or damaged checkpoint; --fresh deletes any.
+    replaced = train_patterns(longer, tmp_path / "truncated.npz", progress=False, checkpoint_mode="resume_or_fresh")
+    afresh = train_patterns(longer, tmp_path / "a.npz", progress=False, checkpoint_mode="fresh")
+    assert np.array_equal(replaced.patterns, afresh.patterns)
+    with pytest.raises(InputError, match="checkpoint_mode"):
+        train_patterns(config, tmp_path / "a.npz", progress=False, checkpoint_mode="maybe")
 
 
 def test_bad_config_raises(tmp_path, scene_dirs):

@@ -393,5 +393,5 @@ def test_damaged_or_wrong_scene_files_give_one_clear_error(tmp_path):
         arrays = dict(data)
     arrays["K_cam"] = np.array([["a", "b", "c"]] * 3)
     np.savez(tmp_path / "strings.npz", **arrays)
-    with pytest.raises(InputError, match="expected numbers"):
+    with pytest.raises(InputError, match="K_cam must hold numbers"):
         load_scene(tmp_path / "strings.npz")

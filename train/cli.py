@@ -90,6 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--logdir", type=Path, default=None, help="TensorBoard log folder")
     train.add_argument("--rerender-weight", type=float, default=None, help="weight of the re-rendering loss (0 = normals only)")
     train.add_argument("--out", type=Path, required=True, help="learned pattern file (.npz)")
+    train.add_argument("--fresh", action="store_true", help="start afresh: delete the checkpoint of --out instead of resuming it")
     train.set_defaults(handler=_train)
 
     search = commands.add_parser("search", help="NLopt search over a heuristic family's parameters")
@@ -178,7 +179,7 @@ def _train(args) -> None:
         "rerender_weight": args.rerender_weight,
     }
     config = load_config(TrainConfig, args.config, overrides)
-    result = train_patterns(config, args.out, logdir=args.logdir)
+    result = train_patterns(config, args.out, logdir=args.logdir, checkpoint_mode="fresh" if args.fresh else "resume")
     last = f", validation MAE {result.val_history[-1][1]:.2f} deg" if result.val_history else " (not validated: pass --val-scenes)"
     print(f"wrote learned patterns to {args.out}{last}")
 

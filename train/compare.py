@@ -392,7 +392,8 @@ def learned_method(config: CompareConfig, num_patterns: int, seed: int, pattern_
     existing = _reusable(path, config_to_dict(train_config), "learned patterns")
     if existing is None:
         start = time.perf_counter()
-        result = train_patterns(train_config, path, logdir=None if logdir is None else logdir / method_id, progress=progress)
+        result = train_patterns(train_config, path, logdir=None if logdir is None else logdir / method_id, progress=progress,
+                                checkpoint_mode="resume_or_fresh")
         seconds = time.perf_counter() - start
         write_json(path.with_name(path.stem + ".run.json"), {"seconds": seconds, "steps": train_config.steps})
         patterns, val_history = result.patterns, result.val_history

@@ -16,6 +16,11 @@ def config_from_dict(cls, values: dict, source: str = "config"):
     unknown = sorted(set(values) - set(fields))
     if unknown:
         raise InputError(f"{source}: unknown key(s) {', '.join(unknown)}; known: {', '.join(fields)}")
+    required = [name for name, field in fields.items()
+                if field.default is dataclasses.MISSING and field.default_factory is dataclasses.MISSING]
+    missing = [name for name in required if name not in values]
+    if missing:
+        raise InputError(f"{source}: missing key(s) {', '.join(missing)}")
     hints = typing.get_type_hints(cls)
     converted = {}
     for key, value in values.items():

@@ -102,10 +102,13 @@ class TrainConfig:
             raise InputError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if self.loss not in LOSSES:
             raise InputError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
-        if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)) or not 0 < self.final_lr_fraction <= 1:
-            raise InputError("learning_rate must be a finite number > 0 and final_lr_fraction in (0, 1]")
-        if not (0 <= self.noise_scale < math.inf and 0 <= self.rerender_weight < math.inf):
-            raise InputError("noise_scale and rerender_weight must be finite numbers >= 0")
+        if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
+            raise InputError(f"learning_rate must be a finite number > 0, got {self.learning_rate!r}")
+        if not 0 < self.final_lr_fraction <= 1:
+            raise InputError(f"final_lr_fraction must lie in (0, 1], got {self.final_lr_fraction!r}")
+        for name in ("noise_scale", "rerender_weight"):
+            if not 0 <= getattr(self, name) < math.inf:
+                raise InputError(f"{name} must be a finite number >= 0, got {getattr(self, name)!r}")
         if self.checkpoint_every < 1 or self.val_every < 0:
             raise InputError("checkpoint_every must be >= 1 and val_every >= 0")
         check_seed("seed", self.seed)
@@ -240,6 +243,9 @@ def checkpoint_path(out: Path) -> Path:
 CHECKPOINT_KEYS = ("config", "logits", "optimiser", "scheduler", "step", "val_history")
 
 
+_AFRESH = "pass --fresh (or delete it) to start afresh"
+
+
 def load_checkpoint(checkpoint: Path, resolved: dict) -> dict:
     """The training state saved in ``checkpoint`` by a run with the config ``resolved``.
 
@@ -252,19 +258,30 @@ def load_checkpoint(checkpoint: Path, resolved: dict) -> dict:
     try:
         state = torch.load(checkpoint, weights_only=True)
     except Exception:  # a damaged file fails in the zip reader or the unpickler, in many ways
-        raise InputError(f"checkpoint {checkpoint} is damaged or not a torch checkpoint; delete it to start afresh") from None
+        raise InputError(f"checkpoint {checkpoint} is damaged or not a torch checkpoint; {_AFRESH}") from None
     if not isinstance(state, dict) or not all(key in state for key in CHECKPOINT_KEYS):
-        raise InputError(f"checkpoint {checkpoint} is not a displex training checkpoint; delete it to start afresh")
+        raise InputError(f"checkpoint {checkpoint} is not a displex training checkpoint; {_AFRESH}")
     if state["config"] != resolved:
-        raise InputError(f"checkpoint {checkpoint} was written with another config; delete it to start afresh")
+        changed = sorted(key for key in resolved if state["config"].get(key) != resolved[key]) if isinstance(state["config"], dict) else []
+        raise InputError(f"checkpoint {checkpoint} was written with another config ({', '.join(changed) or 'other keys'} differ); {_AFRESH}")
     return state
 
 
-def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, progress: bool = True) -> TrainResult:
+CHECKPOINT_MODES = ("resume", "fresh", "resume_or_fresh")
+
+
+def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, progress: bool = True,
+                   checkpoint_mode: str = "resume") -> TrainResult:
     """Learn patterns, write them to ``out`` (.npz) with the resolved config beside them.
 
-    Resumes from ``<out stem>.ckpt.pt`` when it exists and was written with the same config.
+    The run checkpoints to ``<out stem>.ckpt.pt``. ``checkpoint_mode`` says what to do with an
+    existing one: 'resume' resumes it if it was written with the same config and refuses any other
+    (``InputError``: the user decides); 'fresh' deletes it first; 'resume_or_fresh' resumes a
+    matching one and replaces any other (for callers that own the output folder, e.g. compare,
+    where a checkpoint of another config is left over from an interrupted run of an older config).
     """
+    if checkpoint_mode not in CHECKPOINT_MODES:
+        raise InputError(f"checkpoint_mode must be one of {', '.join(CHECKPOINT_MODES)}, got {checkpoint_mode!r}")
     out = Path(out)
     rig = load_rig(config.rig)
     train_scenes = training_samplers([scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed)], config)
@@ -278,8 +295,16 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
     resolved = config_to_dict(config)
     start_step, val_history, loss_value = 0, [], float("nan")
     checkpoint = checkpoint_path(out)
-    if checkpoint.exists():
-        state = load_checkpoint(checkpoint, resolved)
+    state = None
+    if checkpoint.exists() and checkpoint_mode != "fresh":
+        try:
+            state = load_checkpoint(checkpoint, resolved)
+        except InputError:
+            if checkpoint_mode == "resume":
+                raise
+    elif checkpoint.exists():
+        checkpoint.unlink()
+    if state is not None:
         with torch.no_grad():
             logits.copy_(state["logits"])
         optimiser.load_state_dict(state["optimiser"])

@@ -115,10 +115,13 @@ class SearchConfig:
         check_seed("scene_seed", self.scene_seed)
         if self.maxtime is not None and not 0 <= self.maxtime < math.inf:
             raise InputError(f"maxtime must be >= 0 seconds (0 = no limit), got {self.maxtime}")
-        if not (0 <= self.xtol_rel < math.inf and 0 <= self.ftol_abs < math.inf) or not 0 < self.initial_step <= 1:
-            raise InputError("xtol_rel and ftol_abs must be >= 0 and initial_step in (0, 1]")
-        if not 0 <= self.noise_scale < math.inf or self.pixels_per_scene < 0:
-            raise InputError("noise_scale and pixels_per_scene must be >= 0")
+        for name in ("xtol_rel", "ftol_abs", "noise_scale"):
+            if not 0 <= getattr(self, name) < math.inf:
+                raise InputError(f"{name} must be a finite number >= 0, got {getattr(self, name)!r}")
+        if not 0 < self.initial_step <= 1:
+            raise InputError(f"initial_step must lie in (0, 1], got {self.initial_step!r}")
+        if self.pixels_per_scene < 0:
+            raise InputError(f"pixels_per_scene must be >= 0 (0 = every pixel), got {self.pixels_per_scene!r}")
         if not self.sharpness > 0 or not math.isfinite(self.sharpness):
             raise InputError(f"sharpness must be positive and finite, got {self.sharpness}")
 
