@@ -220,8 +220,30 @@ def load_rig(name_or_path: str | Path = DEFAULT_RIG) -> Rig:
     return rig_from_dict(load_toml(path), default_name=path.stem)
 
 
+RIG_KEYS = {
+    "": ("name", "exposure", "bit_depth", "working_distance", "camera", "display", "noise", "falloff"),
+    "camera": ("height", "width", "fx", "fy", "cx", "cy", "exposure_ms"),
+    "display": ("gamma", "scale", "backlight", "panel_pixels", "light_positions", "panel"),
+}
+"""Keys of a rig TOML by table (``[noise]``, ``[falloff]`` and ``[display.panel]`` are checked by
+the constructors they feed). A misspelt key would otherwise fall back to its default silently."""
+
+
+def _check_rig_keys(config: dict, name: str) -> None:
+    for table, known in RIG_KEYS.items():
+        values = config if not table else config.get(table, {})
+        if not isinstance(values, dict):
+            raise InputError(f"rig {name}: [{table}] must be a table")
+        unknown = sorted(set(values) - set(known))
+        if unknown:
+            where = f"[{table}]" if table else "top level"
+            raise InputError(f"rig {name}: unknown key(s) {', '.join(unknown)} at {where}; known: {', '.join(known)}")
+
+
 def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
-    """Build a rig from the parsed TOML layout documented in ``configs/rigs/README.md``."""
+    """Build a rig from the parsed TOML layout documented in ``configs/rigs/README.md``; unknown
+    keys are errors."""
+    _check_rig_keys(config, default_name)
     try:
         cam = config["camera"]
         camera = Camera(

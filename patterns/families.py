@@ -605,7 +605,7 @@ class MonoRandom(_RandomFamily):
     """Uniform random grey value per superpixel (``torch.rand``), equal in all channels."""
 
     name = "mono_random"
-    summary = "uniform random grey per superpixel (seeded); any M"
+    summary = "uniform random grey per superpixel (seeded); M = 1..1000"
     channels = 1
 
     def _draw(self, shape, generator):
@@ -616,7 +616,7 @@ class TriRandom(_RandomFamily):
     """Uniform random value per superpixel and channel (``torch.rand``)."""
 
     name = "tri_random"
-    summary = "uniform random colour per superpixel (seeded); any M"
+    summary = "uniform random colour per superpixel (seeded); M = 1..1000"
 
     def _draw(self, shape, generator):
         return torch.rand(shape, generator=generator, dtype=torch.float32)
@@ -626,7 +626,7 @@ class GrayNoise(_RandomFamily):
     """Grey with small noise: 0.5 + 0.01 N(0, 1) per superpixel and channel (``torch.randn``)."""
 
     name = "gray_noise"
-    summary = "0.5 grey plus 0.01-std Gaussian noise per superpixel and channel (seeded); any M"
+    summary = "0.5 grey plus 0.01-std Gaussian noise per superpixel and channel (seeded); M = 1..1000"
 
     def _draw(self, shape, generator):
         return _GRAY_NOISE_MEAN + _GRAY_NOISE_STD * torch.randn(shape, generator=generator, dtype=torch.float32)

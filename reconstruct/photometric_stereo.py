@@ -318,8 +318,9 @@ def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSC
         no gradient flows to points or lights.
 
     Raises:
-        InputError: wrong shapes, non-finite or negative inputs, or a falloff that is not positive
-            and finite over the light distances of pixels with valid geometry.
+        InputError: wrong shapes, non-finite inputs, negative emission (captures may be slightly
+            negative, as real ones are after dark-frame subtraction), or a falloff that is not
+            positive and finite over the light distances of pixels with valid geometry.
 
     Example:
         >>> from capture_sim.rig import load_rig

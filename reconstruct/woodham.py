@@ -253,8 +253,9 @@ def solve_woodham(captures, emission, points, lights, falloff, config: WoodhamCo
         and flags, as ``solve_ps``.
 
     Raises:
-        InputError: wrong shapes, non-finite or negative inputs, fewer than 3 captures, or a
-            falloff that is not positive and finite over the light distances.
+        InputError: wrong shapes, non-finite inputs, negative emission (captures may be slightly
+            negative), fewer than 3 captures, or a falloff that is not positive and finite over
+            the light distances.
 
     Example:
         >>> olat = scene_olat.reshape(144, -1, 3)  # doctest: +SKIP

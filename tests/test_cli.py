@@ -96,6 +96,19 @@ def test_bad_inputs_give_one_line_and_status_2(tmp_path, scene_file, capsys):
         assert not (tmp_path / name).exists() or not any((tmp_path / name).iterdir()), f"half-written output in {name}"
 
 
+def test_rig_exposure_is_the_default_exposure(tmp_path, scene_file):
+    """--exposure defaults to the rig's setting: a fixed gain in the rig file is used as is."""
+    text = (load_rig.__globals__["RIG_DIR"] / "dir-odyssey-ark.toml").read_text()
+    assert 'exposure = "auto"' in text
+    (tmp_path / "fixed.toml").write_text(text.replace('exposure = "auto"', "exposure = 0.5", 1))
+    good, _ = _pattern_file(tmp_path, "random", load_rig())
+    for rig, mode in ((str(tmp_path / "fixed.toml"), "fixed"), ("dir-odyssey-ark", "auto")):
+        out = tmp_path / mode
+        assert run(["simulate", "--scene", str(scene_file), "--patterns", str(good), "--out", str(out), "--rig", rig]) == 0
+        meta = json.loads((out / "meta.json").read_text())
+        assert meta["exposure_mode"] == mode and (meta["exposure"] == 0.5) == (mode == "fixed")
+
+
 def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
     """Inputs that used to pass silently or with a misleading message: each error names the problem."""
     good, _ = _pattern_file(tmp_path, "random", load_rig())
@@ -134,6 +147,8 @@ def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeyp
         "aspect": ("aspect = [16.0, 9.0]", "aspect = [0.0, 0.0]"),
         "offset": ("offset = [0.03, -0.25]", "offset = [0.03]"),
         "bits": ("bit_depth = 12", "bit_depth = inf"),
+        "typo": ("bit_depth = 12", "bitdepth = 8"),  # a misspelt key must not fall back to the default
+        "camera_typo": ("fx = 1141.8", "fx = 1141.8\nfocal = 3.0"),
     }.items():
         assert old in text, (name, old)
         (tmp_path / f"{name}.toml").write_text(text.replace(old, new))

@@ -12,8 +12,10 @@ from capture_sim.rig import load_rig
 from capture_sim.synth import write_scene_set
 from train.compare import (
     CompareConfig,
+    Method,
     collect_methods,
     compare_config_from_dict,
+    first_with_same_patterns,
     load_compare_config,
     repository_root,
     rig_exposure_ms,
@@ -90,6 +92,19 @@ def test_relative_paths_resolve_against_the_repository_root(scenes):
     config = tiny_config(scenes)
     assert config.external[0].path == str(REPO / "patterns" / "data" / "ddps" / "optimized_tri_random_2.npy")
     assert config.train_scenes == (str(scenes / "train"),)
+
+
+def test_published_initial_patterns_are_recognised_as_families():
+    """The published initial tri_random files equal the family made here up to float rounding."""
+    from patterns.families import make_patterns
+
+    for count in (2, 4):
+        published = np.load(REPO / "patterns" / "data" / "ddps" / f"initial_tri_random_{count}.npy")
+        made = make_patterns("tri_random", count).numpy()
+        other = make_patterns("tri_random", count, seed=1).numpy()
+        methods = [Method(name, "heuristic", name, name, count, values) for name, values in
+                   (("made", made), ("published", published), ("other", other), ("olat", "olat"), ("olat2", "olat"))]
+        assert first_with_same_patterns(methods) == [0, 0, 2, 3, 3]
 
 
 def test_rig_exposure_time():
@@ -193,7 +208,7 @@ def test_demo_runs_on_a_tiny_config(tmp_path, capsys):
 
 def test_parallel_subset_evaluation_matches_in_process_and_deduplicates(scenes, tmp_path):
     """Workers and duplicate pattern sets change nothing; a pixel subset is fixed per scene."""
-    from train.compare import Method, evaluate_methods, evaluation_columns
+    from train.compare import evaluate_methods, evaluation_columns
     from train.search import prepare_scenes
 
     rig = load_rig()
@@ -205,7 +220,9 @@ def test_parallel_subset_evaluation_matches_in_process_and_deduplicates(scenes, 
 
     def methods():
         patterns = np.load(REPO / "patterns" / "data" / "ddps" / "initial_tri_complementary.npy").astype(np.float32)
-        return [Method("a", "heuristic", "a", "a", 2, patterns), Method("b", "external", "b", "b", 2, patterns.copy()),
+        # "b" is "a" up to float rounding (one unit in the last place), as a published file of a family.
+        rounded = np.nextafter(patterns, np.float32(0.5))
+        return [Method("a", "heuristic", "a", "a", 2, patterns), Method("b", "external", "b", "b", 2, rounded),
                 Method("olat_woodham", "reference", "olat_woodham", "OLAT", rig.num_lights, "olat")]
 
     serial, parallel = methods(), methods()

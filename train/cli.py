@@ -13,6 +13,7 @@ from capture_sim.errors import InputError
 from capture_sim.rig import DEFAULT_RIG
 
 NOISE_CHOICES = ("off", "default")
+EXPOSURE_HELP = "'rig' (default: the rig's exposure setting, auto for the presets), 'auto' or a positive gain"
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -47,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("--patterns", type=Path, required=True, help="pattern file .npz or .npy")
     simulate.add_argument("--out", type=Path, required=True)
     simulate.add_argument("--noise", choices=NOISE_CHOICES, default="default")
-    simulate.add_argument("--exposure", default="auto", help="'auto' (default) or a positive number")
+    simulate.add_argument("--exposure", default="rig", help=EXPOSURE_HELP)
     simulate.add_argument("--seed", type=int, default=0)
     simulate.add_argument("--rig", default=DEFAULT_RIG)
     simulate.set_defaults(handler=_simulate)
@@ -70,7 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--patterns", required=True, help="pattern file, or 'olat' for the full OLAT stack")
     evaluate.add_argument("--method", choices=("ps", "woodham"), default="ps")
     evaluate.add_argument("--noise", choices=NOISE_CHOICES, default="default")
-    evaluate.add_argument("--exposure", default="auto")
+    evaluate.add_argument("--exposure", default="rig", help=EXPOSURE_HELP)
     evaluate.add_argument("--rig", default=DEFAULT_RIG)
     evaluate.add_argument("--seed", type=int, default=0)
     evaluate.add_argument("--json", type=Path, default=None, help="write results JSON here")
@@ -128,8 +129,9 @@ def build_parser() -> argparse.ArgumentParser:
     invrender.add_argument("--scene", type=Path, required=True)
     invrender.add_argument("--patterns", default="olat", help="pattern file, or 'olat' (fit on 5/6 of the OLAT images)")
     invrender.add_argument("--basis", default="auto", help="number of basis BRDFs J, or 'auto' (model selection)")
-    invrender.add_argument("--iterations", type=int, default=None)
+    invrender.add_argument("--iterations", type=int, default=None, help="Adam steps of the final fit (default 400)")
     invrender.add_argument("--noise", choices=NOISE_CHOICES, default="default")
+    invrender.add_argument("--exposure", default="rig", help=EXPOSURE_HELP + " (pattern captures; OLAT captures use auto)")
     invrender.add_argument("--seed", type=int, default=0)
     invrender.add_argument("--rig", default=DEFAULT_RIG)
     invrender.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default, one per core; 1 is faster on a busy machine)")
@@ -139,7 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = commands.add_parser("demo", help="the main job: scenes, learning, search, comparison, report and charts")
     demo.add_argument("--out", type=Path, default=Path("runs/demo"))
-    demo.add_argument("--steps", type=int, default=None, help="learning steps of every learned pattern set (default: configs/compare/demo.toml)")
+    demo.add_argument("--steps", type=int, default=None, help="learning steps of every learned pattern set (default: 150, and 100 at M = 10, as configs/compare/demo.toml sets them)")
     demo.set_defaults(handler=_demo)
 
     bench = commands.add_parser("bench", help="benchmarks written as JSON (medians of several runs)")
@@ -235,7 +237,7 @@ def _invrender(args) -> None:
     from train.invrender_command import InvRenderConfig, run_invrender
 
     changes = dict(scene=args.scene, patterns=args.patterns, basis=args.basis, noise=args.noise, seed=args.seed, rig=args.rig, json=args.json, out=args.out,
-                   threads=args.threads)
+                   threads=args.threads, exposure=args.exposure)
     if args.iterations is not None:
         changes["iterations"] = args.iterations
     document = run_invrender(InvRenderConfig(**changes))
@@ -290,12 +292,14 @@ def _simulate(args) -> None:
 
 def _patterns_make(args) -> None:
     from capture_sim.rig import load_rig
-    from patterns.families import make_patterns
+    from patterns.families import get_family, make_patterns
     from patterns.io import save_patterns
 
     rig = load_rig(args.rig)
     values = make_patterns(args.family, args.num_patterns, rows=rig.rows, cols=rig.cols, preset=args.preset, seed=args.seed)
-    save_patterns(args.out, values, {"family": args.family, "preset": args.preset, "seed": args.seed, "rig": rig.name, "made_by": "displex patterns make"})
+    parameters = get_family(args.family).parameters(args.num_patterns, rig.rows, rig.cols, args.preset, args.seed)
+    save_patterns(args.out, values, {"family": args.family, "preset": args.preset, "seed": args.seed, "rig": rig.name,
+                                     "parameters": {p.name: p.default for p in parameters}, "made_by": "displex patterns make"})
     print(f"wrote {args.family} M={args.num_patterns} to {args.out}")
 
 

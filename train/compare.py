@@ -15,7 +15,6 @@ A rerun with the same out folder reuses learned and searched pattern files whose
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 import time
@@ -499,11 +498,29 @@ def evaluation_columns(scenes, pixels_per_scene: int, seed: int) -> list:
     return fixed_pixel_subsets(scenes, pixels_per_scene, seed, offset=500)
 
 
-def _pattern_key(patterns) -> str:
-    if isinstance(patterns, str):
-        return patterns
-    values = np.ascontiguousarray(patterns, dtype=np.float32)
-    return f"{values.shape}:{hashlib.sha1(values.tobytes()).hexdigest()}"
+SAME_PATTERNS_TOLERANCE = 1e-6
+"""Pattern sets whose values differ by at most this are the same set: a family made here and the
+published file of it differ by float rounding (up to ~1e-7), far below one display level."""
+
+
+def _same_patterns(first, second) -> bool:
+    if isinstance(first, str) or isinstance(second, str):  # 'olat': the full OLAT stack
+        return isinstance(first, str) and isinstance(second, str) and first == second
+    first, second = np.asarray(first, dtype=np.float32), np.asarray(second, dtype=np.float32)
+    return first.shape == second.shape and float(np.abs(first - second).max(initial=0.0)) <= SAME_PATTERNS_TOLERANCE
+
+
+def first_with_same_patterns(methods: list) -> list[int]:
+    """For each method, the index of the first method whose patterns are the same (itself if none)."""
+    firsts: list[int] = []
+    representative = []
+    for index, method in enumerate(methods):
+        match = next((first for first in firsts if _same_patterns(methods[first].patterns, method.patterns)), None)
+        if match is None:
+            firsts.append(index)
+            match = index
+        representative.append(match)
+    return representative
 
 
 _WORKER_STATE: dict = {}
@@ -535,10 +552,8 @@ def evaluate_methods(methods: list[Method], scenes, config: CompareConfig, expos
     """
     _WORKER_STATE.update(scenes=scenes, columns=evaluation_columns(scenes, config.eval_pixels_per_scene, config.eval_seed),
                          ps=config.ps_config(), seed=config.eval_seed)
-    unique: dict[str, Method] = {}
-    for method in methods:
-        unique.setdefault(_pattern_key(method.patterns), method)
-    jobs = [(key, method, float(noise)) for key, method in unique.items() for noise in config.noise_scales]
+    representative = first_with_same_patterns(methods)
+    jobs = [(key, methods[key], float(noise)) for key in sorted(set(representative)) for noise in config.noise_scales]
     metrics: dict = {}
     bar = tqdm(total=len(jobs), desc="evaluating", unit="set", disable=not progress)
     try:
@@ -559,10 +574,9 @@ def evaluate_methods(methods: list[Method], scenes, config: CompareConfig, expos
     finally:
         bar.close()
         _WORKER_STATE.clear()
-    for method in methods:
-        key = _pattern_key(method.patterns)
-        if unique[key] is not method:
-            method.info["same_patterns_as"] = unique[key].id
+    for method, key in zip(methods, representative):
+        if methods[key] is not method:
+            method.info["same_patterns_as"] = methods[key].id
         method.evaluations = [{"noise_scale": float(noise), **summarise(metrics[(key, float(noise))], method.num_patterns, exposure_ms)}
                               for noise in config.noise_scales]
 

@@ -31,8 +31,8 @@ class EvaluateConfig:
     """'ps' or 'woodham'."""
     noise: str = "default"
     """'default' (the rig's noise) or 'off'."""
-    exposure: str = "auto"
-    """'auto' or a positive number."""
+    exposure: str = "rig"
+    """'rig' (the rig's exposure setting; auto for the presets), 'auto' or a positive number."""
     rig: str = DEFAULT_RIG
     """Rig preset or TOML path."""
     seed: int = 0
@@ -54,7 +54,7 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
         values, _ = load_patterns(config.patterns)
         check_patterns_match_rig(values, rig.rows, rig.cols)
         patterns = torch.as_tensor(values)
-    settings = EvalSettings(method=config.method, noise_scale=0.0 if config.noise == "off" else 1.0, exposure=parse_exposure(config.exposure), seed=config.seed)
+    settings = EvalSettings(method=config.method, noise_scale=0.0 if config.noise == "off" else 1.0, exposure=parse_exposure(str(config.exposure), rig), seed=config.seed)
     scenes = resolve_scenes(config.scenes, "test", rig)
     rows, panels = [], []
     for index, scene in enumerate(tqdm(scenes, desc="evaluating", unit="scene", disable=not progress)):

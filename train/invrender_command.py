@@ -52,7 +52,8 @@ MAX_THREADS = 1024
 
 @dataclass(frozen=True)
 class InvRenderConfig:
-    """What `displex invrender` does (the CLI maps its flags onto these fields)."""
+    """What `displex invrender` does. The CLI maps its flags onto these fields; geometry, batch_pixels,
+    tv_weight and selection are set from Python only."""
 
     scene: Path
     """Scene interchange .npz (DESIGN section 7) with an OLAT stack."""
@@ -70,8 +71,9 @@ class InvRenderConfig:
     """Seed of the capture noise, k-means and pixel batches."""
     noise: str = "default"
     """'default': the rig's noise model and bit depth on every capture; 'off': noise-free."""
-    exposure: str = "auto"
-    """Exposure of pattern captures: 'auto' or a positive number (OLAT captures always use auto)."""
+    exposure: str = "rig"
+    """Exposure of pattern captures: 'rig' (the rig's setting; auto for the presets), 'auto' or a
+    positive number (OLAT captures always use auto)."""
     geometry: str = "auto"
     """'near', 'far' or 'auto' (far field only where it is indistinguishable, ``choose_light_model``)."""
     rig: str = DEFAULT_RIG
@@ -156,19 +158,20 @@ def _prepare_data(config: InvRenderConfig, scene, rig, pixels, split) -> _Data:
         if config.patterns == "olat":
             captures = olat_captures
             emission = olat_emission(split.fit, pixels.transport.num_lights, olat_exposure)
-            exposure = olat_exposure
+            exposure, setting = olat_exposure, "auto"
             describe = {"patterns": "olat", "M": int(split.fit.numel()), "pattern_meta": {}}
         else:
             values, pattern_meta = load_patterns(config.patterns)
             check_patterns_match_rig(values, rig.rows, rig.cols)
             pattern_set = torch.as_tensor(values, dtype=torch.float32)
-            exposure = resolve_exposure(parse_exposure(str(config.exposure)), pattern_set, scene, rig)
+            setting = parse_exposure(str(config.exposure), rig)
+            exposure = resolve_exposure(setting, pattern_set, scene, rig)
             capture = simulate(pattern_set, pixels.transport, rig, exposure=exposure, noise=noise_model, bit_depth=bits, generator=generator)
             captures, emission, exposure = capture.captures, capture.emission, capture.exposure
             describe = {"patterns": str(config.patterns), "M": int(values.shape[0]), "pattern_meta": pattern_meta}
     describe.update({
         "exposure": exposure,
-        "exposure_mode": "auto" if config.patterns == "olat" or config.exposure == "auto" else "fixed",
+        "exposure_mode": "auto" if config.patterns == "olat" or setting == "auto" else "fixed",
         "olat_exposure": olat_exposure,
         "noise": None if noise_free else {"shot": rig.noise.shot, "read_std": rig.noise.read_std, "bit_depth": rig.bit_depth},
         "saturated_fraction": float((captures >= 1.0).double().mean()),

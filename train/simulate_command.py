@@ -29,24 +29,33 @@ class SimulateConfig:
     """Output folder."""
     noise: str = "default"
     """'default': the rig's noise model and bit depth; 'off': noise-free and unquantised (clipping stays)."""
-    exposure: str = "auto"
-    """'auto' (DESIGN section 3, over the scene's mask) or a positive number."""
+    exposure: str = "rig"
+    """'rig' (the rig's exposure setting), 'auto' (DESIGN section 3, over the scene's mask) or a
+    positive number."""
     seed: int = 0
     """Seed of the noise generator."""
     rig: str = DEFAULT_RIG
     """Rig preset or TOML path: display model and sensor."""
 
 
-def parse_exposure(text: str) -> float | str:
-    """'auto' or a positive float; anything else raises ``InputError``."""
+def parse_exposure(text: str, rig: Rig | None = None) -> float | str:
+    """'auto' or a positive float from an exposure setting; anything else raises ``InputError``.
+
+    'rig' stands for the rig's own setting: its fixed exposure, or 'auto' when it has none (as
+    the presets do). Without a ``rig`` it is accepted (for early validation) and returned as is.
+    """
+    if text == "rig":
+        if rig is None:
+            return "rig"
+        return "auto" if rig.exposure is None else float(rig.exposure)
     if text == "auto":
         return "auto"
     try:
         value = float(text)
     except ValueError:
-        raise InputError(f"exposure must be 'auto' or a positive number, got {text!r}") from None
+        raise InputError(f"exposure must be 'rig', 'auto' or a positive number, got {text!r}") from None
     if not value > 0 or not np.isfinite(value):
-        raise InputError(f"exposure must be 'auto' or a positive number, got {text!r}")
+        raise InputError(f"exposure must be 'rig', 'auto' or a positive number, got {text!r}")
     return value
 
 
@@ -69,7 +78,8 @@ def run_simulate(config: SimulateConfig) -> dict:
     if config.noise not in ("off", "default"):
         raise InputError(f"--noise must be 'off' or 'default', got {config.noise!r}")
     patterns = torch.as_tensor(pattern_values, dtype=torch.float32)
-    exposure = resolve_exposure(parse_exposure(str(config.exposure)), patterns, scene, rig)
+    setting = parse_exposure(str(config.exposure), rig)
+    exposure = resolve_exposure(setting, patterns, scene, rig)
     noise_free = config.noise == "off"
     with torch.no_grad():
         transport = light_transport(scene.olat)
@@ -98,7 +108,7 @@ def run_simulate(config: SimulateConfig) -> dict:
         "scale": rig.scale,
         "gamma": rig.gamma,
         "exposure": capture.exposure,
-        "exposure_mode": "auto" if config.exposure == "auto" else "fixed",
+        "exposure_mode": "auto" if setting == "auto" else "fixed",
         "backlight": rig.backlight.tolist(),
         "bit_depth": None if noise_free else rig.bit_depth,
         "noise": None if noise_free else {"shot": rig.noise.shot, "read_std": rig.noise.read_std},
