@@ -12,6 +12,26 @@ import numpy as np
 from capture_sim.errors import InputError
 
 
+def refuse_overwriting(outputs, inputs) -> None:
+    """Raise ``InputError`` if an output file would replace an input file or another output.
+
+    Args:
+        outputs: (what, path or None) pairs of files a command will write.
+        inputs: (what, path or None) pairs of files it reads (folders are ignored).
+    """
+    seen: dict = {}
+    for what, path in inputs:
+        if path is not None and Path(path).is_file():
+            seen.setdefault(Path(path).resolve(), what)
+    for what, path in outputs:
+        if path is None:
+            continue
+        resolved = Path(path).resolve()
+        if resolved in seen:
+            raise InputError(f"{what} {path} is also the {seen[resolved]}: writing it would destroy that file")
+        seen[resolved] = what
+
+
 @contextmanager
 def atomic_path(path: str | Path, suffix: str = "", sync: bool = False):
     """Yield a temporary path next to ``path``; on success it replaces ``path`` in one rename.

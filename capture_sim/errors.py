@@ -89,7 +89,8 @@ def check_array(
         low, high = value_range
         vmin, vmax = float(value.min()), float(value.max())
         if vmin < low or vmax > high:
-            raise InputError(f"{name}: values must lie in [{low:g}, {high:g}], found [{vmin:.4g}, {vmax:.4g}]")
+            # Enough digits that a value a rounding step outside a bound does not print as the bound.
+            raise InputError(f"{name}: values must lie in [{low:g}, {high:g}], found [{vmin:.9g}, {vmax:.9g}]")
 
 
 def _dims_match(actual: tuple[int, ...], expected: tuple) -> bool:

@@ -23,6 +23,10 @@ RIG_DIR = CONFIG_DIR / "rigs"
 DEFAULT_RIG = "dir-odyssey-ark"
 
 
+MAX_IMAGE_SIDE = 100_000
+"""Largest image height or width in pixels (sensors stop well short of it)."""
+
+
 @dataclass(frozen=True)
 class Camera:
     """Pinhole camera of the rig.
@@ -36,6 +40,13 @@ class Camera:
     K_cam: tuple[tuple[float, float, float], ...]
     height: int
     width: int
+
+    def __post_init__(self):
+        if not all(isinstance(n, (int, np.integer)) and not isinstance(n, bool) and 1 <= n <= MAX_IMAGE_SIDE for n in (self.height, self.width)):
+            raise InputError(f"camera height and width must be whole numbers in 1..{MAX_IMAGE_SIDE}, got {self.height!r} x {self.width!r}")
+        k = self.matrix()
+        if not (np.isfinite(k).all() and k[0, 0] > 0 and k[1, 1] > 0):
+            raise InputError(f"camera fx and fy must be positive and every intrinsic finite, got fx = {float(k[0, 0]):g}, fy = {float(k[1, 1]):g}")
 
     def matrix(self) -> np.ndarray:
         """(3, 3) float64 intrinsics matrix."""
@@ -248,8 +259,8 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
         cam = config["camera"]
         camera = Camera(
             K_cam=_as_nested(np.array([[cam["fx"], 0.0, cam["cx"]], [0.0, cam["fy"], cam["cy"]], [0.0, 0.0, 1.0]])),
-            height=int(cam["height"]),
-            width=int(cam["width"]),
+            height=_whole_number("camera height", cam["height"]),
+            width=_whole_number("camera width", cam["width"]),
         )
         display = config["display"]
         if "light_positions" in display:
@@ -272,6 +283,9 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
             working_distance=float(config.get("working_distance", 0.5)),
             panel_pixels=tuple(display.get("panel_pixels", (2160, 3840))),
         )
+    except InputError as err:  # a check of a part (camera, panel, Rig): prefix the rig once
+        message = str(err)
+        raise InputError(message if message.startswith("rig ") else f"rig {default_name}: {message}") from None
     except KeyError as missing:
         raise InputError(f"rig {default_name}: missing key {missing}") from None
     except (TypeError, ValueError, OverflowError, ZeroDivisionError, IndexError) as err:

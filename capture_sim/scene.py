@@ -75,6 +75,8 @@ class Scene:
 def validate_scene(scene: Scene) -> None:
     """Raise ``InputError`` with one readable line if the scene breaks DESIGN section 7."""
     name = f"scene {scene.meta.get('name', '')}".strip()
+    if "file" in scene.meta:  # the meta name may not say which file is broken
+        name += f" ({scene.meta['file']})"
     check_array(f"{name}: olat", scene.olat, ("K", "H", "W", 3))
     num_lights, height, width, _ = scene.olat.shape
     if scene.olat.dtype not in (np.float16, np.float32):

@@ -192,6 +192,8 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
         meta: the manifest dict.
     """
     frames_dir = Path(frames_dir)
+    if not frames_dir.is_dir():
+        raise InputError(f"{frames_dir} is not a folder of exported frames ({'a file' if frames_dir.exists() else 'not found'})")
     manifest = _read_manifest(frames_dir)
     rows, cols = manifest["rows"], manifest["cols"]
     height, width = manifest["panel_pixels"]

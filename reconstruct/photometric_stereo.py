@@ -52,6 +52,10 @@ MAX_PIXELS_PER_SOLVE = 1 << 19
 """Pixels solved together (a full 512 x 612 image is one solve; larger inputs are split)."""
 
 
+MAX_MIN_DISTANCE = 0.1
+"""Metres: ``PSConfig.min_distance`` above this would flag points at ordinary rig distances."""
+
+
 @dataclass(frozen=True)
 class PSConfig:
     """Settings of the analytic photometric-stereo solver (``solve_ps``)."""
@@ -86,13 +90,21 @@ class PSConfig:
     superpixel or not in front of the camera (z <= min_distance) are flagged bad_geometry."""
 
     def __post_init__(self):
-        if not self.damping > 0:
-            raise InputError(f"PSConfig.damping must be positive, got {self.damping}")
+        if not 0 < self.damping <= 1:  # relative to the system's scale: above 1 it outweighs the data
+            raise InputError(f"PSConfig.damping must lie in (0, 1], got {self.damping!r}")
         if self.max_shadow_iterations < 0 or self.max_alternations < 1 or self.line_search_steps < 0:
             raise InputError("PSConfig: iteration caps must be >= 0 (max_alternations >= 1)")
-        positive = ("tolerance_deg", "kink_tolerance_deg", "restart_condition", "condition_threshold", "min_distance")
-        if not all(getattr(self, name) > 0 for name in positive):
-            raise InputError(f"PSConfig: {', '.join(positive)} must be positive")
+        for name in ("tolerance_deg", "kink_tolerance_deg", "restart_condition", "condition_threshold"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"PSConfig: {name} must be positive, got {getattr(self, name)!r}")
+        if not 0 < self.min_distance <= MAX_MIN_DISTANCE:
+            raise InputError(f"PSConfig: min_distance must lie in (0, {MAX_MIN_DISTANCE:g}] metres, got {self.min_distance!r}")
+        if not 0 <= self.dark_threshold < self.saturation_threshold <= 1:
+            raise InputError(
+                "PSConfig: need 0 <= dark_threshold < saturation_threshold <= 1, got "
+                f"{self.dark_threshold!r} and {self.saturation_threshold!r}"
+            )
+
 
 
 @dataclass(frozen=True, eq=False)

@@ -109,6 +109,15 @@ def test_rig_exposure_is_the_default_exposure(tmp_path, scene_file):
         assert meta["exposure_mode"] == mode and (meta["exposure"] == 0.5) == (mode == "fixed")
 
 
+def test_evaluate_warns_when_every_pixel_is_invalid(tmp_path, scene_file, capsys):
+    rig = load_rig()
+    black = tmp_path / "black.npy"
+    np.save(black, np.zeros((4, rig.rows, rig.cols, 3), dtype=np.float32))
+    capsys.readouterr()
+    assert run(["evaluate", "--patterns", str(black), "--scenes", str(scene_file)]) == 0
+    assert "warning: every pixel of blob-svbrdf-s3 is flagged invalid" in capsys.readouterr().err
+
+
 def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
     """Inputs that used to pass silently or with a misleading message: each error names the problem."""
     good, _ = _pattern_file(tmp_path, "random", load_rig())
@@ -119,7 +128,8 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
     for name, changes in variants.items():
         np.savez(tmp_path / f"{name}.npz", **{**arrays, **changes})
     rig_text = (load_rig.__globals__["RIG_DIR"] / "panel-55in-4x8.toml").read_text()
-    for name, (old, new) in {"gamma": ("gamma = 2.2", "gamma = 22.0"), "rows": ("rows = 4", "rows = 4.5")}.items():
+    for name, (old, new) in {"gamma": ("gamma = 2.2", "gamma = 22.0"), "rows": ("rows = 4", "rows = 4.5"),
+                             "height": ("height = 512", "height = 0")}.items():
         (tmp_path / f"{name}.toml").write_text(rig_text.replace(old, new))
     (tmp_path / "inf_noise.toml").write_text("noise_scale = inf\n")
     simulate = ["simulate", "--patterns", str(good), "--out", str(tmp_path / "out"), "--scene"]
@@ -133,7 +143,21 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         (simulate + [str(scene_file), "--rig", str(tmp_path / "rows.toml")], "panel grid must be whole numbers"),
         (["train", "--config", str(tmp_path / "inf_noise.toml"), "--out", str(tmp_path / "t.npz")], "noise_scale must be a finite number"),
         (["scenes", "synth", "--out", str(tmp_path / "tiny"), "--size", "2x2"], "covers no pixel centre of a 2 x 2 image"),
+        (simulate + [str(scene_file), "--rig", str(tmp_path / "height.toml")], "camera height and width must be whole numbers"),
+        # argparse's own errors, in one line too.
+        (["train", "--M", "1.5", "--out", str(tmp_path / "t.npz")], "train: argument --M: invalid int value"),
+        (["evaluate", "--patterns", "olat", "--scenes", ""], "empty path"),
+        # Outputs that would destroy an input.
+        (["evaluate", "--patterns", str(good), "--scenes", str(scene_file), "--json", str(good)], "would destroy"),
+        (["train", "--init", str(good), "--out", str(good)], "would destroy"),
+        (["bench", "ps", "--sweep", "--json", str(tmp_path / "sweep.png")], "would destroy"),
+        (["evaluate", "--patterns", "olat", "--scenes", str(scene_file), str(tmp_path / "twin" / scene_file.name), "--out", str(tmp_path / "e")],
+         "share the file name"),
+        (["train", "--M", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "t.npz")], "init 'auto' starts M = 1"),
+        (["import-frames", str(good), "--out", str(tmp_path / "i.npz")], "not a folder of exported frames"),
     ]
+    (tmp_path / "twin").mkdir()
+    (tmp_path / "twin" / scene_file.name).write_bytes(scene_file.read_bytes())
     for argv, message in cases:
         capsys.readouterr()
         assert run(argv) == 2, argv
@@ -214,6 +238,10 @@ def test_evaluate_json_matches_saved_normal_maps(tmp_path, scene_file):
         ("learned_seeds = [4294967296]\n", "seed"),
         ("scene_size = [128]\n", "list of 2 values"),
         ("heuristics = []\nlearned_counts = []\ninclude_olat_woodham = false\n", "nothing to compare"),
+        ("noise_scales = [1.0, nan]\n", "finite values >= 0"),
+        ("pattern_counts = [2, 2]\n", "lists a value twice"),
+        ("[[external]]\nname = ''\npath = 'patterns/data/ddps/optimized_tri_random_2.npy'\n", "non-empty and distinct"),
+        ("[solver]\nmin_distance = 1e30\n", "min_distance must lie in"),
     ],
 )
 def test_compare_refuses_bad_configs(tmp_path, capsys, body, message):

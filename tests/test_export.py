@@ -145,8 +145,11 @@ def test_export_refuses_bad_patterns(tmp_path, small_rig):
 
 
 def test_import_refuses_tampered_or_incomplete_folders(tmp_path, small_rig):
-    with pytest.raises(InputError, match="manifest.json"):
+    with pytest.raises(InputError, match="not a folder of exported frames"):
         import_frames(tmp_path / "nothing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="no manifest.json"):
+        import_frames(tmp_path / "empty")
     export_frames(_patterns(small_rig, 2), small_rig, tmp_path)
     other = load_rig("panel-55in-4x8")
     with pytest.raises(InputError, match="4 x 8"):

@@ -9,6 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from capture_sim.atomic import refuse_overwriting
 from capture_sim.errors import InputError
 from capture_sim.rig import DEFAULT_RIG
 
@@ -26,8 +27,27 @@ def _size(text: str) -> tuple[int, int]:
     return height, width
 
 
+class _UsageError(Exception):
+    """A command line that argparse rejects (unknown flag, a number that is not one)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one error line, like every other bad input: ``run`` prints it (argparse's own
+    ``error`` prints the whole usage text and exits)."""
+
+    def error(self, message):
+        raise _UsageError(f"{self.prog}: {message} (see {self.prog} --help)")
+
+
+def _path(text: str) -> Path:
+    """A command-line path; an empty one is refused (Path('') would mean the current folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("empty path")
+    return Path(text)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="displex",
         description="Design illumination patterns for display-camera photometric stereo: synthesise scenes, "
         "simulate captures, reconstruct, learn and search patterns, export them, compare methods.",
@@ -36,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     scenes = commands.add_parser("scenes", help="synthetic scene sets").add_subparsers(dest="scenes_command", required=True)
     synth = scenes.add_parser("synth", help="write the default synthetic scene set (train/ and test/ splits)")
-    synth.add_argument("--out", type=Path, required=True, help="output folder")
+    synth.add_argument("--out", type=_path, required=True, help="output folder")
     synth.add_argument("--size", type=_size, default=(128, 153), help="image size HxW (default 128x153; full 512x612)")
     synth.add_argument("--seed", type=int, default=0)
     synth.add_argument("--rig", default=DEFAULT_RIG, help="rig preset or TOML path")
@@ -44,9 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
     synth.set_defaults(handler=_scenes_synth)
 
     simulate = commands.add_parser("simulate", help="simulate captures of a scene under a pattern set")
-    simulate.add_argument("--scene", type=Path, required=True)
-    simulate.add_argument("--patterns", type=Path, required=True, help="pattern file .npz or .npy")
-    simulate.add_argument("--out", type=Path, required=True)
+    simulate.add_argument("--scene", type=_path, required=True)
+    simulate.add_argument("--patterns", type=_path, required=True, help="pattern file .npz or .npy")
+    simulate.add_argument("--out", type=_path, required=True)
     simulate.add_argument("--noise", choices=NOISE_CHOICES, default="default")
     simulate.add_argument("--exposure", default="rig", help=EXPOSURE_HELP)
     simulate.add_argument("--seed", type=int, default=0)
@@ -57,7 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     make = patterns.add_parser("make", help="write a heuristic pattern set")
     make.add_argument("--family", required=True, help="family name (see `displex patterns list`)")
     make.add_argument("--M", type=int, required=True, dest="num_patterns", help="number of patterns")
-    make.add_argument("--out", type=Path, required=True)
+    make.add_argument("--out", type=_path, required=True)
     make.add_argument("--preset", default="default", help="'default' (off level 0) or 'ddps' (published 0.1/0.9 levels)")
     make.add_argument("--seed", type=int, default=0, help="seed of the random families")
     make.add_argument("--rig", default=DEFAULT_RIG)
@@ -67,66 +87,66 @@ def build_parser() -> argparse.ArgumentParser:
     listing.set_defaults(handler=_patterns_list)
 
     evaluate = commands.add_parser("evaluate", help="reconstruct scenes under a pattern set and measure normal errors")
-    evaluate.add_argument("--scenes", type=Path, nargs="+", default=(), help="scene files or folders (default: synthetic test split)")
+    evaluate.add_argument("--scenes", type=_path, nargs="+", default=(), help="scene files or folders (default: synthetic test split)")
     evaluate.add_argument("--patterns", required=True, help="pattern file, or 'olat' for the full OLAT stack")
     evaluate.add_argument("--method", choices=("ps", "woodham"), default="ps")
     evaluate.add_argument("--noise", choices=NOISE_CHOICES, default="default")
     evaluate.add_argument("--exposure", default="rig", help=EXPOSURE_HELP)
     evaluate.add_argument("--rig", default=DEFAULT_RIG)
     evaluate.add_argument("--seed", type=int, default=0)
-    evaluate.add_argument("--json", type=Path, default=None, help="write results JSON here")
-    evaluate.add_argument("--out", type=Path, default=None, help="folder for normal maps, error maps, summary figure")
+    evaluate.add_argument("--json", type=_path, default=None, help="write results JSON here")
+    evaluate.add_argument("--out", type=_path, default=None, help="folder for normal maps, error maps, summary figure")
     evaluate.set_defaults(handler=_evaluate)
 
     train = commands.add_parser("train", help="learn patterns end to end through the photometric stereo")
-    train.add_argument("--config", type=Path, default=None, help="TOML in configs/train/ (flags override it)")
+    train.add_argument("--config", type=_path, default=None, help="TOML in configs/train/ (flags override it)")
     train.add_argument("--M", type=int, dest="num_patterns", default=None)
     train.add_argument("--init", default=None, help="family name or pattern file to start from")
-    train.add_argument("--scenes", type=Path, nargs="+", default=None, help="training scenes (default: synthetic train split)")
+    train.add_argument("--scenes", type=_path, nargs="+", default=None, help="training scenes (default: synthetic train split)")
     train.add_argument(
-        "--val-scenes", type=Path, nargs="+", default=None, help="validation scenes (default: the synthetic test split with the default training scenes, none with --scenes)"
+        "--val-scenes", type=_path, nargs="+", default=None, help="validation scenes (default: the synthetic test split with the default training scenes, none with --scenes)"
     )
     train.add_argument("--steps", type=int, default=None)
     train.add_argument("--seed", type=int, default=None)
-    train.add_argument("--logdir", type=Path, default=None, help="TensorBoard log folder")
+    train.add_argument("--logdir", type=_path, default=None, help="TensorBoard log folder")
     train.add_argument("--rerender-weight", type=float, default=None, help="weight of the re-rendering loss (0 = normals only)")
-    train.add_argument("--out", type=Path, required=True, help="learned pattern file (.npz)")
+    train.add_argument("--out", type=_path, required=True, help="learned pattern file (.npz)")
     train.add_argument("--fresh", action="store_true", help="start afresh: delete the checkpoint of --out instead of resuming it")
     train.set_defaults(handler=_train)
 
     search = commands.add_parser("search", help="NLopt search over a heuristic family's parameters")
-    search.add_argument("--config", type=Path, default=None, help="TOML in configs/search/ (flags override it)")
+    search.add_argument("--config", type=_path, default=None, help="TOML in configs/search/ (flags override it)")
     search.add_argument("--family", default=None, help="family name (see `displex patterns list`); default: the config's")
     search.add_argument("--M", type=int, dest="num_patterns", default=None, help="number of patterns; default: the config's")
     search.add_argument("--algorithm", default=None, help="LN_BOBYQA (default), LN_COBYLA, LN_SBPLX, GN_CRS2_LM, GN_ESCH, GN_DIRECT_L, LD_MMA, LD_LBFGS")
     search.add_argument("--maxeval", type=int, default=None, help="largest number of objective evaluations")
     search.add_argument("--maxtime", type=float, default=None, help="wall-clock limit in seconds (0 = none)")
     search.add_argument("--seed", type=int, default=None)
-    search.add_argument("--scenes", type=Path, nargs="+", default=None, help="scenes to optimise on (default: synthetic train split)")
-    search.add_argument("--logdir", type=Path, default=None, help="TensorBoard folder: MAE and best-so-far per evaluation")
-    search.add_argument("--out", type=Path, required=True, help="best pattern file; the trace goes to <stem>.trace.csv and .trace.png")
+    search.add_argument("--scenes", type=_path, nargs="+", default=None, help="scenes to optimise on (default: synthetic train split)")
+    search.add_argument("--logdir", type=_path, default=None, help="TensorBoard folder: MAE and best-so-far per evaluation")
+    search.add_argument("--out", type=_path, required=True, help="best pattern file; the trace goes to <stem>.trace.csv and .trace.png")
     search.set_defaults(handler=_search)
 
     compare = commands.add_parser("compare", help="compare learned, searched, heuristic and external patterns on held-out scenes")
-    compare.add_argument("--config", type=Path, required=True, help="TOML in configs/compare/ (or a preset name: default, demo)")
-    compare.add_argument("--out", type=Path, default=None, help="output folder (default: the config's `out`)")
+    compare.add_argument("--config", type=_path, required=True, help="TOML in configs/compare/ (or a preset name: default, demo)")
+    compare.add_argument("--out", type=_path, default=None, help="output folder (default: the config's `out`)")
     compare.set_defaults(handler=_compare)
 
     export = commands.add_parser("export", help="write display frames, manifest and contact sheet for the rig")
-    export.add_argument("--patterns", type=Path, required=True)
+    export.add_argument("--patterns", type=_path, required=True)
     export.add_argument("--rig", default=DEFAULT_RIG)
-    export.add_argument("--out", type=Path, required=True)
+    export.add_argument("--out", type=_path, required=True)
     export.add_argument("--bit-depth", type=int, choices=(8, 16), default=8)
     export.add_argument("--olat", action="store_true", help="also write the OLAT capture sequence (K frames, black, white)")
     export.set_defaults(handler=_export)
 
     import_frames = commands.add_parser("import-frames", help="recover patterns from exported frames")
-    import_frames.add_argument("frames", type=Path, help="folder written by `displex export`")
-    import_frames.add_argument("--out", type=Path, required=True)
+    import_frames.add_argument("frames", type=_path, help="folder written by `displex export`")
+    import_frames.add_argument("--out", type=_path, required=True)
     import_frames.set_defaults(handler=_import_frames)
 
     invrender = commands.add_parser("invrender", help="baseline inverse renderer: normals, basis BRDFs, relighting")
-    invrender.add_argument("--scene", type=Path, required=True)
+    invrender.add_argument("--scene", type=_path, required=True)
     invrender.add_argument("--patterns", default="olat", help="pattern file, or 'olat' (fit on 5/6 of the OLAT images)")
     invrender.add_argument("--basis", default="auto", help="number of basis BRDFs J, or 'auto' (model selection)")
     invrender.add_argument("--iterations", type=int, default=None, help="Adam steps of the final fit (default 400)")
@@ -135,18 +155,18 @@ def build_parser() -> argparse.ArgumentParser:
     invrender.add_argument("--seed", type=int, default=0)
     invrender.add_argument("--rig", default=DEFAULT_RIG)
     invrender.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default, one per core; 1 is faster on a busy machine)")
-    invrender.add_argument("--json", type=Path, default=None)
-    invrender.add_argument("--out", type=Path, default=None)
+    invrender.add_argument("--json", type=_path, default=None)
+    invrender.add_argument("--out", type=_path, default=None)
     invrender.set_defaults(handler=_invrender)
 
     demo = commands.add_parser("demo", help="the main job: scenes, learning, search, comparison, report and charts")
-    demo.add_argument("--out", type=Path, default=Path("runs/demo"))
+    demo.add_argument("--out", type=_path, default=Path("runs/demo"))
     demo.add_argument("--steps", type=int, default=None, help="learning steps of every learned pattern set (default: 150, and 100 at M = 10, as configs/compare/demo.toml sets them)")
     demo.set_defaults(handler=_demo)
 
     bench = commands.add_parser("bench", help="benchmarks written as JSON (medians of several runs)")
     bench.add_argument("target", help="what to benchmark: sim, ps, train, invrender")
-    bench.add_argument("--json", type=Path, default=None, help="write the results here")
+    bench.add_argument("--json", type=_path, default=None, help="write the results here")
     bench.add_argument("--repeats", type=int, default=5, help="timed runs per measurement (median)")
     bench.add_argument(
         "--sweep", action="store_true", help="with target ps: normal error against noise level for several methods (JSON and a chart next to it)"
@@ -160,10 +180,16 @@ def build_parser() -> argparse.ArgumentParser:
 def _evaluate(args) -> None:
     from train.evaluate_command import EvaluateConfig, run_evaluate
 
+    refuse_overwriting([("--json", args.json)], [("--patterns file", None if args.patterns == "olat" else args.patterns),
+                                                 *(("scene", scene) for scene in args.scenes)])
     config = EvaluateConfig(tuple(args.scenes), args.patterns, args.method, args.noise, args.exposure, args.rig, args.seed, args.json, args.out)
     document = run_evaluate(config)
     for row in document["scenes"]:
         print(f"{row['name']:<32} MAE {row['mae']:6.2f} deg  median {row['median']:6.2f}  invalid {row['invalid_fraction']:.3f}")
+        if row["invalid_fraction"] >= 1.0:
+            # The MAE of such a scene measures the default normal, not a reconstruction.
+            print(f"displex: warning: every pixel of {row['name']} is flagged invalid (too few, identical, dark or "
+                  "saturated captures): its MAE says nothing about the patterns", file=sys.stderr)
     print(f"mean MAE {document['mean_mae']:.2f} deg")
 
 
@@ -181,6 +207,8 @@ def _train(args) -> None:
         "rerender_weight": args.rerender_weight,
     }
     config = load_config(TrainConfig, args.config, overrides)
+    refuse_overwriting([("--out", args.out), ("config record", args.out.with_name(args.out.stem + ".config.json"))],
+                       [("--init file", config.init), ("--config file", args.config), *(("scene", scene) for scene in config.scenes)])
     result = train_patterns(config, args.out, logdir=args.logdir, checkpoint_mode="fresh" if args.fresh else "resume")
     last = f", validation MAE {result.val_history[-1][1]:.2f} deg" if result.val_history else " (not validated: pass --val-scenes)"
     print(f"wrote learned patterns to {args.out}{last}")
@@ -199,7 +227,11 @@ def _search(args) -> None:
         "seed": args.seed,
         "scenes": None if args.scenes is None else tuple(str(p) for p in args.scenes),
     }
-    summary = run_search(load_config(SearchConfig, args.config, overrides), args.out, logdir=args.logdir)
+    config = load_config(SearchConfig, args.config, overrides)
+    written = [("--out", args.out)] + [(what, args.out.with_name(args.out.stem + suffix))
+                                        for what, suffix in (("trace", ".trace.csv"), ("trace chart", ".trace.png"), ("config record", ".config.json"))]
+    refuse_overwriting(written, [("--config file", args.config), *(("scene", scene) for scene in config.scenes)])
+    summary = run_search(config, args.out, logdir=args.logdir)
     print(f"{summary['family']} M={summary['num_patterns']} {summary['algorithm']}: MAE {summary['start_mae']:.2f} -> "
           f"{summary['best_mae']:.2f} deg in {summary['evaluations']} evaluations ({summary['stop_reason']}); trace {summary['trace_csv']}")
 
@@ -227,6 +259,8 @@ def _import_frames(args) -> None:
     from patterns.io import save_patterns
 
     values, manifest = import_frames(args.frames)
+    frames = [("manifest", args.frames / "manifest.json")] + [("frame", args.frames / frame["file"]) for frame in manifest["frames"]]
+    refuse_overwriting([("--out", args.out)], frames)
     save_patterns(args.out, values, {"family": "imported", "made_by": "displex import-frames", "source": str(args.frames), "rig": manifest.get("rig")})
     print(f"recovered {len(values)} patterns from {args.frames} into {args.out}")
 
@@ -236,6 +270,7 @@ def _invrender(args) -> None:
 
     from train.invrender_command import InvRenderConfig, run_invrender
 
+    refuse_overwriting([("--json", args.json)], [("--scene", args.scene), ("--patterns file", None if args.patterns == "olat" else args.patterns)])
     changes = dict(scene=args.scene, patterns=args.patterns, basis=args.basis, noise=args.noise, seed=args.seed, rig=args.rig, json=args.json, out=args.out,
                    threads=args.threads, exposure=args.exposure)
     if args.iterations is not None:
@@ -266,6 +301,8 @@ def _bench(args) -> None:
             raise InputError(f"--sweep applies to target ps, not {args.target!r}")
         from train.bench import DEFAULT_SIZE, run_sweep
 
+        if args.json is not None:  # the chart goes next to the JSON, same name, .png
+            refuse_overwriting([("--json", args.json), ("chart", args.json.with_suffix(".png"))], [])
         document = run_sweep(args.json, args.size or DEFAULT_SIZE)
         for row in document["methods"]:
             print(f"{row['label']:36s} " + "  ".join(f"{scale:g}: {mae:.3f}" for scale, mae in zip(document["noise_scales"], row["mae"])))
@@ -316,7 +353,11 @@ def _patterns_list(args) -> None:
 
 def run(argv: list[str] | None = None) -> int:
     """Run one command; returns 0 on success, 2 on bad input (after printing one error line)."""
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except _UsageError as err:
+        print(f"displex: error: {str(err).removeprefix('displex ').removeprefix('displex: ')}", file=sys.stderr)
+        return 2
     try:
         args.handler(args)
     except InputError as err:

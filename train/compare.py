@@ -150,14 +150,28 @@ class CompareConfig:
         outside = sorted({m for m in counts if m not in self.pattern_counts})
         if outside:
             raise InputError(f"M = {', '.join(map(str, outside))} (learned, re-rendering or [[search]] runs) not in pattern_counts {list(self.pattern_counts)}")
-        if self.eval_pixels_per_scene < 0 or not self.rerender_weight > 0 or self.eval_workers < 1:
-            raise InputError("eval_pixels_per_scene must be >= 0, rerender_weight > 0 and eval_workers >= 1")
+        if self.eval_pixels_per_scene < 0:
+            raise InputError(f"eval_pixels_per_scene must be >= 0 (0 = every pixel), got {self.eval_pixels_per_scene}")
+        if not 0 < self.rerender_weight < math.inf:
+            raise InputError(f"rerender_weight must be a finite number > 0, got {self.rerender_weight!r}")
+        if self.eval_workers < 1:
+            raise InputError(f"eval_workers must be >= 1, got {self.eval_workers}")
+        # A repeated entry would be measured and reported twice under one name.
+        for name in ("pattern_counts", "noise_scales", "learned_seeds", "heuristics"):
+            values = list(getattr(self, name))
+            if len(set(values)) != len(values):
+                raise InputError(f"{name} lists a value twice: {values}")
+        names = [item.name for item in self.external]
+        if any(not name.strip() for name in names) or len(set(names)) != len(names):
+            raise InputError(f"[[external]] names must be non-empty and distinct, got {names}")
+        if not str(self.out).strip():
+            raise InputError("out must be a folder path, got an empty string")
         self.ps_config()
         for item in self.external:
             if not Path(item.path).is_file():
                 raise InputError(f"external pattern file {item.name!r} not found: {item.path}")
-        if not self.noise_scales or any(s < 0 for s in self.noise_scales):
-            raise InputError("noise_scales must list values >= 0")
+        if not self.noise_scales or not all(0 <= s < math.inf for s in self.noise_scales):
+            raise InputError(f"noise_scales must list finite values >= 0, got {list(self.noise_scales)}")
         if self.default_noise not in self.noise_scales:
             raise InputError(f"default_noise {self.default_noise} must be one of noise_scales {list(self.noise_scales)}")
         for name in self.heuristics:

@@ -56,6 +56,10 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
         patterns = torch.as_tensor(values)
     settings = EvalSettings(method=config.method, noise_scale=0.0 if config.noise == "off" else 1.0, exposure=parse_exposure(str(config.exposure), rig), seed=config.seed)
     scenes = resolve_scenes(config.scenes, "test", rig)
+    stems = [Path(scene.meta.get("file", scene.name)).stem for scene in scenes]
+    repeated = sorted({stem for stem in stems if stems.count(stem) > 1})
+    if config.out is not None and repeated:
+        raise InputError(f"scenes from different folders share the file name(s) {', '.join(repeated)}: their outputs in --out would overwrite each other")
     rows, panels = [], []
     for index, scene in enumerate(tqdm(scenes, desc="evaluating", unit="scene", disable=not progress)):
         pixels = scene_pixels(scene, rig, require_normals=True)

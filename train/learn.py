@@ -22,7 +22,7 @@ from tqdm import tqdm
 from capture_sim.atomic import atomic_path, write_json
 from capture_sim.errors import InputError, check_seed
 from capture_sim.rig import DEFAULT_RIG, load_rig
-from patterns.families import FAMILIES, make_patterns
+from patterns.families import FAMILIES, get_family, make_patterns
 from patterns.io import check_patterns_match_rig, load_patterns, save_patterns
 from patterns.parameterization import keep_movable, logits_to_patterns, patterns_to_logits
 from reconstruct.photometric_stereo import solve_ps
@@ -96,8 +96,11 @@ class TrainConfig:
     renderer under the patterns, against the simulated captures); 0 = normal loss only."""
 
     def __post_init__(self):
-        if self.num_patterns < 1 or self.steps < 0 or self.pixels_per_scene < 1:
-            raise InputError("num_patterns and pixels_per_scene must be >= 1 and steps >= 0")
+        for name, least in (("num_patterns", 1), ("pixels_per_scene", 1), ("steps", 0)):
+            if getattr(self, name) < least:
+                raise InputError(f"{name} must be >= {least}, got {getattr(self, name)}")
+        if not all(side >= 2 for side in self.scene_size):
+            raise InputError(f"scene_size must be at least [2, 2] (height, width), got {list(self.scene_size)}")
         if self.solver not in SOLVERS:
             raise InputError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if self.loss not in LOSSES:
@@ -109,8 +112,10 @@ class TrainConfig:
         for name in ("noise_scale", "rerender_weight"):
             if not 0 <= getattr(self, name) < math.inf:
                 raise InputError(f"{name} must be a finite number >= 0, got {getattr(self, name)!r}")
-        if self.checkpoint_every < 1 or self.val_every < 0:
-            raise InputError("checkpoint_every must be >= 1 and val_every >= 0")
+        if self.checkpoint_every < 1:
+            raise InputError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
+        if self.val_every < 0:
+            raise InputError(f"val_every must be >= 0 (0 = only at the end), got {self.val_every}")
         check_seed("seed", self.seed)
         check_seed("scene_seed", self.scene_seed)
         if self.init != "auto" and self.init not in FAMILIES and Path(self.init).suffix not in (".npz", ".npy"):
@@ -121,6 +126,9 @@ def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
     """(M, R, C, 3) starting patterns from a family name, 'auto' or a pattern file."""
     if config.init == "auto":
         family = "tri_complementary" if config.num_patterns <= 2 else "mono_gradient"
+        if not get_family(family).supports(config.num_patterns, rows, cols):
+            raise InputError(f"init 'auto' starts M = {config.num_patterns} from {family}, which does not support it on a "
+                             f"{rows} x {cols} grid; choose a family that does with --init (see displex patterns list --M {config.num_patterns})")
         return make_patterns(family, config.num_patterns, rows=rows, cols=cols, seed=config.seed).float()
     if config.init in FAMILIES:
         return make_patterns(config.init, config.num_patterns, rows=rows, cols=cols, seed=config.seed).float()
@@ -311,7 +319,7 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
         scheduler.load_state_dict(state["scheduler"])
         start_step, val_history = state["step"], state["val_history"]
         loss_value = state.get("loss", float("nan"))
-    writer = _summary_writer(logdir)
+    writer = summary_writer(logdir)
     ps_config = UnrolledPSConfig()
     eval_settings = EvalSettings(noise_scale=config.noise_scale, seed=config.seed + 7919)
     bar = tqdm(range(start_step, config.steps), initial=start_step, total=config.steps, desc=f"learning M={config.num_patterns}", disable=not progress, unit="step")
@@ -351,9 +359,12 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
     return TrainResult(learned, val_history, loss_value)
 
 
-def _summary_writer(logdir: Path | None):
+def summary_writer(logdir: Path | None):
+    """A TensorBoard writer for the folder ``logdir`` (created if needed), or None without one."""
     if logdir is None:
         return None
+    if Path(logdir).exists() and not Path(logdir).is_dir():
+        raise InputError(f"--logdir {logdir} is a file, not a folder")
     from torch.utils.tensorboard import SummaryWriter
 
     return SummaryWriter(str(logdir))

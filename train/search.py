@@ -42,7 +42,7 @@ from patterns.io import save_patterns
 from reconstruct.photometric_stereo import PSConfig, solve_ps
 from train.capture import capture_scene
 from train.config_io import config_to_dict
-from train.learn import normal_loss
+from train.learn import normal_loss, summary_writer
 from train.scene_pixels import ScenePixels, fixed_pixel_subsets, scene_pixels
 from train.scene_sets import resolve_scenes
 
@@ -444,11 +444,7 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
     scenes = prepare_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed)
     objective = PatternObjective(config.family, config.num_patterns, scenes, rig.rows, rig.cols, config.noise_scale,
                                  config.sharpness, config.pixels_per_scene, config.seed)
-    writer = None
-    if logdir is not None:
-        from torch.utils.tensorboard import SummaryWriter
-
-        writer = SummaryWriter(str(logdir))
+    writer = summary_writer(logdir)
     bar = tqdm(total=config.maxeval, desc=f"search {config.family} M={config.num_patterns} {config.algorithm}", unit="eval", disable=not progress)
     trace = trace_path(out)
     seen: list = []

@@ -71,6 +71,8 @@ def resolve_exposure(exposure, patterns: torch.Tensor, scene: Scene, rig: Rig) -
 def run_simulate(config: SimulateConfig) -> dict:
     """Simulate, write ``captures.npy``, 16-bit PNGs, ``contact_sheet.png`` and ``meta.json``; return the meta."""
     check_seed("--seed", config.seed)
+    if Path(config.out).exists() and not Path(config.out).is_dir():
+        raise InputError(f"--out {config.out} is a file; simulate writes a folder")
     scene = load_scene(config.scene)
     rig = rig_for_scene(load_rig(config.rig), scene)
     pattern_values, pattern_meta = load_patterns(config.patterns)
