@@ -131,7 +131,9 @@ def auto_exposure(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERC
     values = radiance.detach().reshape(-1)
     rank = min(values.numel(), max(1, int(np.ceil(percentile / 100.0 * values.numel()))))
     level = float(torch.kthvalue(values, rank).values)
-    return target / level if level > 1e-12 else 1.0
+    # Any positive normal number works: radiance may come in any units (an OLAT stack scaled by
+    # 1e-20 is still a scene); below the dtype's smallest normal the gain would overflow it.
+    return target / level if level >= torch.finfo(values.dtype).tiny else 1.0
 
 
 class _SaturatingClip(torch.autograd.Function):

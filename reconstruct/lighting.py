@@ -251,6 +251,18 @@ def sees_all_lights(normal: torch.Tensor, points: torch.Tensor, corners: torch.T
     return (corners @ normal).amin(dim=0) - height > margin
 
 
+def emission_scale(emission: torch.Tensor) -> torch.Tensor:
+    """The largest |emission| (a detached scalar; 1 for an all-zero emission).
+
+    Solvers divide the emission by it and the albedo by it afterwards (``unscale_albedo``): the
+    model I = a b . n is unchanged, and squared lighting terms stay inside the dtype's range for
+    any overall radiance scale (an OLAT stack in other units, an exposure of 1e-30 or 1e20).
+    The solution is homogeneous in the emission, so the gradient through the detached scale is
+    exact."""
+    peak = emission.detach().abs().amax()
+    return torch.where(peak > 0, peak, torch.ones_like(peak))
+
+
 def lighting_matrix(emission: torch.Tensor, lights: torch.Tensor) -> torch.Tensor:
     """The matrix G that turns shadowed falloff weights into effective lighting vectors.
 

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import torch
 
 from capture_sim.errors import InputError, check_array
-from reconstruct.lighting import LightField, differentiable_vectors, lighting_matrix
+from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, lighting_matrix
 from reconstruct.pixel_solve import CONDITION_CAP, Moments, alternate, implicit_step, normalised_moments, take_pixels
 from reconstruct.shadow_search import restarted_search
 
@@ -300,14 +300,20 @@ def solve_pixels(solve_block, captures, emission, points, pixel_index, lights, c
     captures, emission = captures.to(dtype), emission.to(dtype)
     points = torch.as_tensor(points).detach().to(dtype)
     lights = torch.as_tensor(lights).detach().to(dtype)
-    lighting = lighting_matrix(emission, lights)
+    scale = emission_scale(emission)
+    lighting = lighting_matrix(emission / scale, lights)
     config = working_config(config, dtype)
     count = points.shape[0] if pixel_index is None else pixel_index.numel()
     results = []
     for start in range(0, count, MAX_PIXELS_PER_SOLVE):
         block = slice(start, start + MAX_PIXELS_PER_SOLVE) if pixel_index is None else pixel_index[start : start + MAX_PIXELS_PER_SOLVE]
         results.append(solve_block(captures[:, block], lighting, points[block], lights, config))
-    return concatenate_results(results, dtype)
+    return unscale_albedo(concatenate_results(results, dtype), scale)
+
+
+def unscale_albedo(result: PSResult, scale: torch.Tensor) -> PSResult:
+    """``result`` with its albedo in the units of the unscaled emission (see ``emission_scale``)."""
+    return dataclasses.replace(result, albedo=result.albedo / scale)
 
 
 def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSConfig(), chunk_size: int = 8192) -> PSResult:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import torch
 
 from capture_sim.errors import InputError, check_array
-from reconstruct.lighting import extreme_lights, sees_all_lights
+from reconstruct.lighting import emission_scale, extreme_lights, sees_all_lights
 from reconstruct.pixel_solve import symmetric_apply
 
 # Unique entries of a symmetric 3x3 matrix, in the order (00, 11, 22, 01, 02, 12).
@@ -175,7 +175,8 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
     check_array("reach", reach, (lights.shape[0], num_pixels), finite=False)
     reach = reach.to(dtype)
     lights_h = torch.cat([lights, torch.ones_like(lights[:, :1])], dim=1)  # (K, 4)
-    table = (emission.permute(0, 2, 1)[:, :, None, :] * lights_h.T[None, None]).reshape(-1, lights.shape[0])  # (M*3*4, K)
+    scale = emission_scale(emission)  # keeps the squared terms in range whatever the radiance units
+    table = ((emission / scale).permute(0, 2, 1)[:, :, None, :] * lights_h.T[None, None]).reshape(-1, lights.shape[0])  # (M*3*4, K)
     intensity = captures.permute(0, 2, 1)  # (M, 3c, N)
     equation_weight = (intensity < config.saturation_threshold).to(dtype)
     view = -points_t / points_t.norm(dim=0, keepdim=True).clamp_min(1e-12)
@@ -250,4 +251,4 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
     # Return camera-facing normals: a back-facing solution (specular or unconverged pixels) is
     # flipped; its albedo is left as solved.
     facing = torch.where(_dot3(normal, view) < 0, -1.0, 1.0).to(dtype)
-    return (normal * facing).T, albedo.T
+    return (normal * facing).T, (albedo / scale).T

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 
 from capture_sim.errors import InputError, check_array
-from reconstruct.lighting import LightField, lighting_matrix, olat_moments
+from reconstruct.lighting import LightField, emission_scale, lighting_matrix, olat_moments
 from reconstruct.photometric_stereo import (
     PatternEvaluator,
     PSResult,
@@ -37,6 +37,7 @@ from reconstruct.photometric_stereo import (
     finalise,
     image_pixels,
     scatter_result,
+    unscale_albedo,
     working_config,
 )
 from reconstruct.pixel_solve import Moments, albedo_step, damped_solve, scaled_moments, unit
@@ -210,9 +211,11 @@ def _solve(captures, emission, points, pixel_index, lights, falloff, config, chu
     lights = torch.as_tensor(lights).detach().to(dtype)
     config = working_config(config, dtype)
     if light_emission is not None:
-        light_emission, lighting = light_emission.to(dtype), None
+        scale = emission_scale(light_emission.to(dtype))
+        light_emission, lighting = light_emission.to(dtype) / scale, None
     else:
-        lighting = lighting_matrix(emission.detach().to(dtype), lights)
+        scale = emission_scale(emission.detach().to(dtype))
+        lighting = lighting_matrix(emission.detach().to(dtype) / scale, lights)
     count = points.shape[0] if pixel_index is None else pixel_index.numel()
     results = []
     for start in range(0, count, MAX_PIXELS_PER_SOLVE):
@@ -230,7 +233,7 @@ def _solve(captures, emission, points, pixel_index, lights, falloff, config, chu
             equation_weight, capture_scale, dark, saturated = capture_flags(block_captures, config)
             evaluator = PatternEvaluator(light_field, lighting, block_captures, equation_weight, capture_scale)
             results.append(_solve_block(evaluator, light_field, config, (dark, saturated)))
-    return concatenate_results(results, dtype)
+    return unscale_albedo(concatenate_results(results, dtype), scale)
 
 
 def solve_woodham(captures, emission, points, lights, falloff, config: WoodhamConfig = WoodhamConfig(), chunk_size: int = 8192) -> PSResult:

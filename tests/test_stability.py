@@ -178,3 +178,28 @@ def test_bad_inputs_and_background_nan_from_the_review(problem):
     assert torch.isfinite(result.normal).all()
     woodham = solve_woodham_image(captures, problem["emission"], points, scene.mask, lights, Falloff())
     assert torch.isfinite(woodham.normal).all()
+
+
+@pytest.mark.parametrize("factor", [1e-25, 1e20])
+def test_emission_in_any_units_gives_the_same_normals(problem, factor):
+    """Radiance in other units (an OLAT stack scaled by 1e-25 or 1e20): the same normals, the albedo
+    in the new units; squared lighting terms used to under- or overflow float32."""
+    from reconstruct.unrolled_ps import solve_ps_unrolled
+
+    captures, emission, points = (problem[key].float() for key in ("captures", "emission", "points"))
+    lights = problem["scene"].lights.float()  # float32: where 1e20 squared overflows
+    base = solve_ps(captures, emission, points, lights, Falloff())
+    scaled_emission = (emission * factor).requires_grad_()
+    scaled = solve_ps(captures, scaled_emission, points, lights, Falloff())
+    scaled.normal.sum().backward()  # (d albedo / d emission ~ 1 / emission^2 is past float32 at 1e-25)
+    assert torch.isfinite(scaled_emission.grad).all()
+    assert torch.equal(scaled.valid, base.valid) and base.valid.all()
+    assert (scaled.normal - base.normal).abs().max() < 5e-4  # 0.03 deg: float32 rounding of the scaled emission
+    assert torch.allclose(scaled.albedo * factor, base.albedo, rtol=1e-3)
+    normal, albedo = solve_ps_unrolled(captures, emission, points, lights, Falloff())
+    normal_scaled, albedo_scaled = solve_ps_unrolled(captures, emission * factor, points, lights, Falloff())
+    assert (normal_scaled - normal).abs().max() < 5e-4 and torch.allclose(albedo_scaled * factor, albedo, rtol=1e-3)
+    olat = (problem["olat"] * 0.9 / float(problem["olat"].max())).float()
+    woodham = solve_woodham_olat(olat, points, lights, Falloff())
+    woodham_scaled = solve_woodham_olat(olat, points, lights, Falloff(), exposure=factor)
+    assert torch.equal(woodham_scaled.valid, woodham.valid) and (woodham_scaled.normal - woodham.normal).abs().max() < 5e-4
