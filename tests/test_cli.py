@@ -155,6 +155,9 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
          "share the file name"),
         (["train", "--M", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "t.npz")], "init 'auto' starts M = 1"),
         (["import-frames", str(good), "--out", str(tmp_path / "i.npz")], "not a folder of exported frames"),
+        (["search", "--family", "tri_random", "--M", "50", "--maxeval", "2", "--scenes", str(scene_file), "--out", str(tmp_path / "s.npz")],
+         "grows with the square of the parameter count"),
+        (["train", "--rerender-weight", "1e38", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "r.npz")], "learning diverged at step 1"),
     ]
     (tmp_path / "twin").mkdir()
     (tmp_path / "twin" / scene_file.name).write_bytes(scene_file.read_bytes())

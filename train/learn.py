@@ -138,7 +138,7 @@ def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
     values, _ = load_patterns(path)
     check_patterns_match_rig(values, rows, cols)
     if values.shape[0] != config.num_patterns:
-        raise InputError(f"{path} holds {values.shape[0]} patterns but M = {config.num_patterns}")
+        raise InputError(f"{path} holds {values.shape[0]} patterns but M = {config.num_patterns} (pass --M {values.shape[0]} to start from it)")
     return torch.as_tensor(values)
 
 
@@ -327,6 +327,10 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
         optimiser.zero_grad()
         loss = training_loss(logits, train_scenes, config, step, ps_config)
         loss.backward()
+        if not (torch.isfinite(loss.detach()) and torch.isfinite(logits.grad).all()):
+            # Stop before the step writes NaN into the patterns (and a checkpoint).
+            raise InputError(f"learning diverged at step {step + 1}: the loss or its gradient is not finite "
+                             f"(loss {float(loss.detach()):.4g}); lower learning_rate or rerender_weight")
         optimiser.step()
         keep_movable(logits)
         scheduler.step()

@@ -50,6 +50,10 @@ ALGORITHMS = ("LN_BOBYQA", "LN_COBYLA", "LN_SBPLX", "GN_CRS2_LM", "GN_ESCH", "GN
 """NLopt algorithms `displex search` accepts: local derivative-free (LN), global (GN), gradient-based (LD)."""
 
 GRADIENT_ALGORITHMS = frozenset(name for name in ALGORITHMS if name.startswith("LD_"))
+QUADRATIC_MEMORY_ALGORITHMS = frozenset({"LN_BOBYQA", "LN_COBYLA"})
+MAX_QUADRATIC_PARAMETERS = 2000
+"""Largest parameter count for BOBYQA and COBYLA: their O(P^2) state is ~2 GB by
+P ~ 20000 (a random family at M = 50), past which the machine runs out of memory."""
 MAX_EVALUATIONS = 2**31 - 1
 """Largest ``maxeval`` (NLopt stores it in a C int)."""
 
@@ -263,6 +267,11 @@ def minimise(
         raise InputError("bounds must be finite with low <= high")
     if ((start < low) | (start > high)).any():
         raise InputError("the start point lies outside the bounds")
+    if algorithm in QUADRATIC_MEMORY_ALGORITHMS and start.size > MAX_QUADRATIC_PARAMETERS:
+        raise InputError(
+            f"{algorithm} keeps state that grows with the square of the parameter count, and this search has "
+            f"{start.size} parameters (at most {MAX_QUADRATIC_PARAMETERS}): use LD_MMA or LD_LBFGS, or a smaller M"
+        )
     begun = time.perf_counter()
     tracker = _Tracker(evaluate, int(maxeval), low, high, on_evaluation or (lambda *_: None))
     # Gradient algorithms ask for the start's gradient first: compute it now so the cache serves it.

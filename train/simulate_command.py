@@ -17,6 +17,10 @@ from patterns.png import write_png
 from train.figures import for_display, image_grid, save_figure
 
 
+SHEET_CAPTURES = 48
+"""Captures shown on the contact sheet (every capture is still written as a PNG)."""
+
+
 @dataclass(frozen=True)
 class SimulateConfig:
     """What `displex simulate` does."""
@@ -120,12 +124,13 @@ def run_simulate(config: SimulateConfig) -> dict:
         "formula": "captures = q(clip(exposure * sum_k scale * (P[m,k] + backlight[k]) ** gamma * olat[k] + noise))",
     }
     write_json(out / "meta.json", meta)
+    shown = images[:SHEET_CAPTURES]
     fig = image_grid(
-        [for_display(image) for image in images],
-        [f"pattern {index}" for index in range(len(images))],
+        [for_display(image) for image in shown],
+        [f"pattern {index}" for index in range(len(shown))],
         f"Simulated captures of {scene.name}",
-        f"{len(images)} patterns, exposure {capture.exposure:.4g} ({meta['exposure_mode']}), noise {config.noise}; "
-        "shown with a 1/2.2 display gamma.",
+        f"{len(images)} patterns{f' (the first {len(shown)} shown)' if len(shown) < len(images) else ''}, exposure "
+        f"{capture.exposure:.4g} ({meta['exposure_mode']}), noise {config.noise}; shown with a 1/2.2 display gamma.",
     )
     save_figure(fig, out / "contact_sheet.png")
     return meta
