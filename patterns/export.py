@@ -259,6 +259,15 @@ def _read_manifest(frames_dir: Path) -> dict:
             raise InputError(f"{path}: every manifest frame needs a plain file name, got {frame!r}")
         if frame.get("kind") == "pattern" and not isinstance(frame.get("index"), int):
             raise InputError(f"{path}: pattern frame {frame['file']} has no integer index")
+    # Fields that restate one another must agree: an edited manifest is not silently half-applied.
+    files = [frame["file"] for frame in manifest["frames"]]
+    if len(set(files)) != len(files):
+        raise InputError(f"{path}: the manifest lists a frame file twice")
+    if "capture_order" in manifest and manifest["capture_order"] != files:
+        raise InputError(f"{path}: capture_order does not list the frames in their manifest order")
+    for key, count, pixels in (("row_boundaries", manifest["rows"], panel[0]), ("col_boundaries", manifest["cols"], panel[1])):
+        if key in manifest and manifest[key] != superpixel_boundaries(count, pixels).tolist():
+            raise InputError(f"{path}: {key} do not split {pixels} display pixels into {count} superpixels as the export does")
     return manifest
 
 

@@ -175,6 +175,14 @@ def test_import_refuses_tampered_or_incomplete_folders(tmp_path, small_rig):
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(InputError, match="do not show"):
         import_frames(tmp_path)
+    # Fields that restate one another must agree.
+    for key, change, message in (("capture_order", lambda order: order[::-1], "capture_order"),
+                                 ("row_boundaries", lambda bounds: [0] * len(bounds), "row_boundaries"),
+                                 ("frames", lambda frames: frames + frames[:1], "twice")):
+        edited = dict(manifest, **{key: change(manifest[key])})
+        (tmp_path / "manifest.json").write_text(json.dumps(edited))
+        with pytest.raises(InputError, match=message):
+            import_frames(tmp_path)
 
     del manifest["frames"]
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
