@@ -16,6 +16,11 @@ class InputError(ValueError):
     """Bad input from a user: wrong shape, non-finite data, out-of-range values, missing file."""
 
 
+class DisplexWarning(UserWarning):
+    """Input that is usable but probably not what the user meant; the command line prints it as
+    one ``displex: warning:`` line."""
+
+
 MAX_SEED = 2**32 - 1
 """Largest seed accepted. Seeds derived from it (seed * 1000 + scene index and the like) stay
 well inside the 64-bit range of torch's and numpy's generators."""

@@ -6,6 +6,7 @@ every command fails with one clear message on a bad file.
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,7 +15,7 @@ import torch
 
 from capture_sim.array_files import read_arrays, read_meta
 from capture_sim.atomic import save_npz
-from capture_sim.errors import InputError, check_array
+from capture_sim.errors import DisplexWarning, InputError, check_array
 from capture_sim.geometry import points_from_depth
 from capture_sim.rig import Camera, Rig
 
@@ -178,4 +179,13 @@ def rig_for_scene(rig: Rig, scene: Scene) -> Rig:
     if (rows, cols) != (rig.rows, rig.cols):
         raise InputError(f"scene {scene.name} has a {rows} x {cols} light grid but rig {rig.name} is {rig.rows} x {rig.cols}")
     camera = Camera(K_cam=tuple(tuple(float(v) for v in row) for row in scene.K_cam), height=scene.height, width=scene.width)
+    shift = float(np.linalg.norm(scene.light_positions.astype(np.float64) - rig.light_positions, axis=-1).max())
+    if shift > LIGHT_MISMATCH_M:
+        warnings.warn(f"scene {scene.name}: its light positions differ from rig {rig.name}'s by up to {shift:.3f} m; "
+                      "the scene's own calibration is used", DisplexWarning, stacklevel=2)
     return rig.replace(light_positions=scene.light_positions.astype(np.float64), camera=camera)
+
+
+LIGHT_MISMATCH_M = 0.01
+"""Metres: scene and rig light positions further apart than this are reported (a scene from
+another rig, or a stale calibration); closer ones are calibration rounding."""

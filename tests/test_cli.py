@@ -118,6 +118,16 @@ def test_evaluate_warns_when_every_pixel_is_invalid(tmp_path, scene_file, capsys
     assert "warning: every pixel of blob-svbrdf-s3 is flagged invalid" in capsys.readouterr().err
 
 
+def test_scene_lights_far_from_the_rig_are_reported(tmp_path, scene_file, capsys):
+    text = (load_rig.__globals__["RIG_DIR"] / "panel-32in-5x10.toml").read_text()
+    (tmp_path / "flat.toml").write_text(text.replace("rows = 5", "rows = 9").replace("cols = 10", "cols = 16"))
+    for rig, warned in ((str(tmp_path / "flat.toml"), True), ("dir-odyssey-ark", False)):
+        capsys.readouterr()
+        assert run(["evaluate", "--patterns", "olat", "--scenes", str(scene_file), "--rig", rig]) == 0
+        err = capsys.readouterr().err
+        assert ("displex: warning: scene blob-svbrdf-s3: its light positions differ from rig panel-32in-5x10's" in err) == warned, err
+
+
 def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
     """Inputs that used to pass silently or with a misleading message: each error names the problem."""
     good, _ = _pattern_file(tmp_path, "random", load_rig())

@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 
 from capture_sim.atomic import refuse_overwriting
-from capture_sim.errors import InputError
+from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import DEFAULT_RIG
 
 NOISE_CHOICES = ("off", "default")
@@ -351,8 +352,18 @@ def _patterns_list(args) -> None:
         print(f"{name:<20} {family.summary}\n{'':<20} parameters at M={args.num_patterns}: {names[:160]}{'...' if len(names) > 160 else ''}")
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None, _default=warnings.showwarning):
+    if issubclass(category, DisplexWarning):
+        from tqdm import tqdm
+
+        tqdm.write(f"displex: warning: {message}", file=sys.stderr)  # on its own line, above any progress bar
+    else:
+        _default(message, category, filename, lineno, file, line)
+
+
 def run(argv: list[str] | None = None) -> int:
     """Run one command; returns 0 on success, 2 on bad input (after printing one error line)."""
+    warnings.showwarning = _show_warning
     try:
         args = build_parser().parse_args(argv)
     except _UsageError as err:
