@@ -22,7 +22,9 @@ _EPS = 1e-6
 def ggx_distribution(n_dot_h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     """GGX normal distribution D(h) for cos(theta_h) ``n_dot_h`` and width ``alpha`` (broadcast)."""
     a2 = alpha * alpha
-    denom = n_dot_h * n_dot_h * (a2 - 1.0) + 1.0
+    # n.h^2 (a2 - 1) + 1 written without cancellation: in float32 a2 - 1 rounds to -1 for small
+    # alpha, and the peak (n.h = 1) became 0 / 0 instead of 1 / (pi a2).
+    denom = (1.0 - n_dot_h) * (1.0 + n_dot_h) + n_dot_h * n_dot_h * a2
     return a2 / (math.pi * denom * denom)
 
 
