@@ -129,6 +129,8 @@ def auto_exposure(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERC
     """
     # The rank statistic is exact in the input's own dtype (converting to float64 would only copy).
     values = radiance.detach().reshape(-1)
+    if values.numel() == 0:
+        return 1.0  # no pixels: nothing to expose for
     rank = min(values.numel(), max(1, int(np.ceil(percentile / 100.0 * values.numel()))))
     level = float(torch.kthvalue(values, rank).values)
     # Any positive normal number works: radiance may come in any units (an OLAT stack scaled by
@@ -235,6 +237,10 @@ def simulate(
     """
     check_array("patterns", patterns, ("M", rig.rows, rig.cols, 3), value_range=(0.0, 1.0))
     patterns = torch.as_tensor(patterns)
+    if patterns.shape[0] == 0:
+        raise InputError("patterns: need at least one pattern (M >= 1)")
+    if not (noise is None or noise == "rig" or isinstance(noise, NoiseModel)):
+        raise InputError(f"noise must be a NoiseModel, None or 'rig', got {noise!r}")
     rig.check_lights(transport.num_lights)
     emitted = display_emission(patterns, rig.backlight_flat(patterns.dtype), rig.gamma, rig.scale)
     radiance = noise_free_radiance(emitted, transport)

@@ -274,8 +274,8 @@ def _check_inputs(captures, emission, points, lights, config, chunk_size):
         raise InputError("captures and emission must be torch tensors")
     if not (captures.is_floating_point() and emission.is_floating_point()):
         raise InputError("captures and emission must be floating-point tensors")
-    if captures.shape[0] < 1:
-        raise InputError("captures must hold at least one pattern")
+    if captures.shape[0] < 1 or lights.shape[0] < 1:
+        raise InputError(f"need at least one pattern and one light, got M = {captures.shape[0]}, K = {lights.shape[0]}")
     if captures.shape[0] != emission.shape[0]:
         raise InputError(f"captures have {captures.shape[0]} patterns but emission has {emission.shape[0]}")
     if emission.shape[1] != lights.shape[0]:
@@ -296,7 +296,8 @@ def solve_pixels(solve_block, captures, emission, points, pixel_index, lights, c
         captures: (M, P, 3); points: (P, 3); pixel_index: (N,) long indices into P, or None for all.
         emission, lights, config, chunk_size: as ``solve_ps``.
     """
-    dtype = torch.promote_types(captures.dtype, emission.dtype)
+    # At least float32: float16 moments and condition numbers overflow.
+    dtype = torch.promote_types(torch.promote_types(captures.dtype, emission.dtype), torch.float32)
     captures, emission = captures.to(dtype), emission.to(dtype)
     points = torch.as_tensor(points).detach().to(dtype)
     lights = torch.as_tensor(lights).detach().to(dtype)

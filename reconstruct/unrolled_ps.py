@@ -164,9 +164,19 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
         in ``captures`` and ``emission``.
     """
     check_array("captures", captures, ("M", "N", 3))
-    check_array("emission", emission, (captures.shape[0], lights.shape[0], 3))
+    check_array("emission", emission, (captures.shape[0], lights.shape[0], 3), value_range=(0.0, float("inf")))
+    check_array("points", points, (captures.shape[1], 3))
+    if not (captures.is_floating_point() and emission.is_floating_point()):
+        raise InputError("captures and emission must be floating-point tensors")
+    if 0 in (captures.shape[0], lights.shape[0]):
+        raise InputError(f"need at least one pattern and one light, got M = {captures.shape[0]}, K = {lights.shape[0]}")
     num_patterns, num_pixels = captures.shape[0], captures.shape[1]
-    dtype = captures.dtype
+    # One working dtype, at least float32 (float16 moments overflow).
+    dtype = torch.promote_types(torch.promote_types(captures.dtype, emission.dtype), torch.float32)
+    captures, emission = captures.to(dtype), emission.to(dtype)
+    if num_pixels == 0:
+        empty = captures[0] * 0  # (0, 3), on the inputs' graph
+        return empty, empty.clone()
     points_t, lights = points.to(dtype).T.contiguous(), lights.to(dtype)  # (3, N), (K, 3)
     if reach is None:
         reach = light_reach(points.to(dtype), lights, falloff)

@@ -127,6 +127,11 @@ def test_bad_inputs_raise_clear_errors(tiny_rig):
     other_rig = tiny_rig.replace(light_positions=tiny_rig.light_positions[:1], backlight=tiny_rig.backlight[:1])
     with pytest.raises(InputError, match="lights"):
         simulate(torch.rand(1, 1, 3, 3), transport, other_rig)
+    with pytest.raises(InputError, match="at least one pattern"):
+        simulate(torch.rand(0, tiny_rig.rows, tiny_rig.cols, 3), transport, tiny_rig)
+    with pytest.raises(InputError, match="NoiseModel"):
+        simulate(torch.rand(1, tiny_rig.rows, tiny_rig.cols, 3), transport, tiny_rig, noise="default")
+    assert auto_exposure(torch.zeros(0, 0, 3)) == 1.0
 
 
 def test_review_fixes_for_sensor_rig_and_files(tiny_rig, tmp_path):

@@ -40,6 +40,11 @@ def _solve_with_gradients(captures, emission, points, lights):
     return result
 
 
+def test_half_precision_inputs_are_solved_in_float32(problem):
+    result = solve_ps(problem["captures"].half(), problem["emission"].half(), problem["points"], problem["scene"].lights, Falloff())
+    assert result.normal.dtype == torch.float32 and torch.isfinite(result.normal).all() and result.valid.all()
+
+
 def test_clean_problem_is_valid(problem):
     result = _solve_with_gradients(problem["captures"], problem["emission"], problem["points"], problem["scene"].lights)
     assert result.valid.all()

@@ -69,6 +69,27 @@ def test_degenerate_inputs_stay_finite():
         assert torch.isfinite(emission.grad).all() and torch.isfinite(captures.grad).all()
 
 
+def test_inputs_are_checked_and_any_float_dtype_works():
+    import pytest
+
+    from capture_sim.errors import InputError
+
+    pixels, captures, emission = _sphere_captures(np.load("patterns/data/ddps/initial_mono_gradient.npy"), torch.float32)
+    points, lights, falloff = pixels.points, pixels.lights(), pixels.rig.falloff
+    reference, _ = solve_ps_unrolled(captures, emission, points, lights, falloff)
+    for values, emitted in ((captures.half(), emission.half()), (captures, emission.double())):
+        normal, albedo = solve_ps_unrolled(values, emitted, points, lights, falloff)
+        assert torch.isfinite(normal).all() and torch.isfinite(albedo).all()
+        assert angular_error_deg(normal.float(), reference).max() < 1.0
+    normal, albedo = solve_ps_unrolled(captures[:, :0], emission, points[:0], lights, falloff)
+    assert normal.shape == albedo.shape == (0, 3)
+    bad_points = points.clone()
+    bad_points[0, 0] = float("nan")
+    for args in ((captures, emission, bad_points), (captures, -emission, points), (captures[:0], emission[:0], points)):
+        with pytest.raises(InputError):
+            solve_ps_unrolled(*args, lights, falloff)
+
+
 def test_precomputed_reach_and_chunks_give_the_same_solution():
     patterns = np.load("patterns/data/ddps/initial_tri_gradient.npy")[:2]
     pixels, captures, emission = _sphere_captures(patterns, torch.float32)
