@@ -7,9 +7,11 @@ gamma the display non-linearity and s a global scale.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
-from capture_sim.errors import check_array
+from capture_sim.errors import InputError, check_array
 
 
 def display_emission(patterns: torch.Tensor, backlight: torch.Tensor, gamma: float, scale: float = 1.0) -> torch.Tensor:
@@ -25,7 +27,9 @@ def display_emission(patterns: torch.Tensor, backlight: torch.Tensor, gamma: flo
         (M, K, 3) emitted intensity L in light order k = r * C + c, differentiable in ``patterns``.
     """
     check_array("patterns", patterns, ("...", 3), value_range=(0.0, 1.0))
-    flat = torch.as_tensor(patterns).reshape(patterns.shape[0], -1, 3)
+    if not (0 < gamma < math.inf and 0 < scale < math.inf):
+        raise InputError(f"display gamma and scale must be positive and finite, got {gamma!r}, {scale!r}")
+    flat = torch.as_tensor(patterns).reshape(patterns.shape[0], math.prod(patterns.shape[1:-1]), 3)  # M = 0 too
     light_backlight = torch.as_tensor(backlight, dtype=flat.dtype).reshape(1, -1, 1)
-    check_array("backlight", light_backlight, (1, flat.shape[1], 1))
+    check_array("backlight", light_backlight, (1, flat.shape[1], 1), value_range=(0.0, 1.0))
     return scale * (flat + light_backlight) ** gamma

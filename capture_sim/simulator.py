@@ -22,6 +22,7 @@ recomputed every step and treated as a constant).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -128,6 +129,8 @@ def auto_exposure(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERC
         e > 0 as a Python float (1.0 when the scene is completely dark, so nothing divides by zero).
     """
     # The rank statistic is exact in the input's own dtype (converting to float64 would only copy).
+    if not (0 < percentile <= 100 and 0 < target < math.inf):
+        raise InputError(f"auto exposure needs a percentile in (0, 100] and a positive target, got {percentile!r}, {target!r}")
     values = radiance.detach().reshape(-1)
     if values.numel() == 0:
         return 1.0  # no pixels: nothing to expose for
@@ -184,7 +187,15 @@ def sensor(
 
     Returns:
         (...) captures in [0, 1], same shape as ``signal``.
+
+    Raises:
+        InputError: a bit depth outside 1..24 or a clip sharpness that is not a positive number.
+        Values are not scanned (a hot path of learning; ``simulate`` checks its inputs).
     """
+    if bit_depth is not None and not (isinstance(bit_depth, int) and 1 <= bit_depth <= 24):
+        raise InputError(f"bit_depth must be None or a whole number in 1..24, got {bit_depth!r}")
+    if not 0 < clip_sharpness < math.inf:
+        raise InputError(f"clip_sharpness must be a positive number, got {clip_sharpness!r}")
     if noise is not None:
         # The floor keeps the square root's gradient finite where the variance is zero (no read
         # noise at zero signal, or a noise model scaled to 0).

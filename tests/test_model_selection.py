@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from capture_sim.errors import InputError
+from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.materials import Material, make_material
 from capture_sim.rig import Falloff, load_rig
 from capture_sim.render import render_olat
@@ -144,8 +144,9 @@ def test_run_invrender_auto_basis_writes_the_curve(tmp_path):
     rig = _far_rig()
     save_scene(synthesize_scene("sphere", "lambertian", rig, 24, 29, seed=1), tmp_path / "far.npz")
     out = tmp_path / "run"
-    result = run_invrender(InvRenderConfig(scene=tmp_path / "far.npz", out=out, iterations=5, noise="off",
-                                           selection=SelectionConfig(iterations=5, max_basis=2)))
+    with pytest.warns(DisplexWarning, match="light positions differ"):  # a far scene, run with the default rig
+        result = run_invrender(InvRenderConfig(scene=tmp_path / "far.npz", out=out, iterations=5, noise="off",
+                                               selection=SelectionConfig(iterations=5, max_basis=2)))
     selection = result["model_selection"]
     assert result["far_field"] is True and result["light_model"]["mode"] == "auto"
     assert len(selection["curve"]) == 4 and {c["num_basis"] for c in selection["curve"]} == {1, 2}
