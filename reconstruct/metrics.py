@@ -85,6 +85,8 @@ def _check_images(prediction, truth, mask) -> torch.Tensor:
         raise InputError("mask must be a bool array")
     if not bool(mask.any()):
         raise InputError("mask selects no pixels")
+    if prediction.numel() == 0:
+        raise InputError(f"no images to compare: prediction has shape {tuple(prediction.shape)}")
     return mask
 
 

@@ -76,6 +76,9 @@ def test_bad_inputs_raise():
         psnr(image, image, torch.zeros(4, 5, dtype=torch.bool))
     with pytest.raises(InputError):
         ssim(image, image, torch.ones(4, 5))
+    for metric in (psnr, ssim):  # no images at all (was NaN)
+        with pytest.raises(InputError, match="no images"):
+            metric(torch.zeros(0, 4, 5, 3), torch.zeros(0, 4, 5, 3), torch.ones(4, 5, dtype=torch.bool))
     with pytest.raises(InputError):
         angular_error_deg(torch.zeros(3, 2), torch.zeros(3, 2))
     with pytest.raises(InputError):
