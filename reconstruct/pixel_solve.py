@@ -85,8 +85,9 @@ def damped_direction(system: torch.Tensor, rhs: torch.Tensor, damping: float) ->
 def damped_solve(system: torch.Tensor, rhs: torch.Tensor, damping: float) -> torch.Tensor:
     """Solutions x (..., 3, N) of (A + damping * trace(A) / 3 * I) x = rhs for symmetric PSD A (..., 6, N).
 
-    The determinant of the scaled, damped matrix is at least damping^3, so the division is safe;
-    an all-zero system gives x = 0.
+    The determinant of the scaled, damped matrix is at least damping^3, so the division is safe.
+    Normal equations with an all-zero A have an all-zero rhs too (A = sum b b^T, rhs = sum I b)
+    and give x = 0; an inconsistent pair (A = 0, rhs != 0) gives a large finite x.
     """
     scale = (symmetric_trace(system) / 3).clamp_min(_tiny(system.dtype))
     xx, yy, zz, xy, xz, yz = (system / scale[..., None, :]).unbind(-2)
