@@ -40,9 +40,14 @@ def require_file(path, what: str) -> Path:
     raise InputError(f"{what} file not found: {path}")
 
 
+def is_whole_number(value, low: int = 0, high: float = float("inf")) -> bool:
+    """Whether ``value`` is a Python or numpy integer (not a bool) in [low, high]."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and low <= value <= high
+
+
 def check_seed(name: str, seed) -> int:
     """``seed`` as an int if it is a whole number in [0, MAX_SEED], else ``InputError``."""
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed <= MAX_SEED:
+    if not is_whole_number(seed, 0, MAX_SEED):
         raise InputError(f"{name} must be a whole number in [0, {MAX_SEED}], got {seed!r}")
     return int(seed)
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from capture_sim.errors import InputError, check_array
+from capture_sim.errors import InputError, check_array, is_whole_number
 from capture_sim.toml_io import load_toml
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -42,7 +42,7 @@ class Camera:
     width: int
 
     def __post_init__(self):
-        if not all(isinstance(n, (int, np.integer)) and not isinstance(n, bool) and 1 <= n <= MAX_IMAGE_SIDE for n in (self.height, self.width)):
+        if not (is_whole_number(self.height, 1, MAX_IMAGE_SIDE) and is_whole_number(self.width, 1, MAX_IMAGE_SIDE)):
             raise InputError(f"camera height and width must be whole numbers in 1..{MAX_IMAGE_SIDE}, got {self.height!r} x {self.width!r}")
         k = self.matrix()
         if not (np.isfinite(k).all() and k[0, 0] > 0 and k[1, 1] > 0):
@@ -297,7 +297,7 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
 def panel_size(panel_pixels, name: str = "panel_pixels") -> tuple[int, int]:
     """(height, width) of a display in pixels; ``InputError`` unless two positive whole numbers."""
     values = list(panel_pixels) if isinstance(panel_pixels, (list, tuple, np.ndarray)) else []
-    if len(values) != 2 or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v > 0 for v in values):
+    if len(values) != 2 or not all(is_whole_number(v, 1) for v in values):
         raise InputError(f"{name} must be two positive whole numbers (height, width), got {panel_pixels!r}")
     return int(values[0]), int(values[1])
 
@@ -343,7 +343,7 @@ def panel_positions(
     Returns:
         (R, C, 3) float64 positions in metres, camera frame.
     """
-    if not all(isinstance(n, (int, np.integer)) and not isinstance(n, bool) and n >= 1 for n in (rows, cols)):
+    if not (is_whole_number(rows, 1) and is_whole_number(cols, 1)):
         raise InputError(f"panel grid must be whole numbers of at least 1 x 1, got {rows!r} x {cols!r}")
     if not (len(aspect) == 2 and all(math.isfinite(side) and side > 0 for side in aspect)):
         raise InputError(f"panel aspect must be two positive numbers (width, height), got {aspect!r}")

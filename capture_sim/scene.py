@@ -96,9 +96,11 @@ def validate_scene(scene: Scene) -> None:
         # A bool or integer array where metres or radiance go is a mistake (a mask saved as depth,
         # depth in millimetres), not something to convert silently; intrinsics may be integers.
         value = getattr(scene, key)
-        kinds = "iuf" if key == "K_cam" else "f"
-        if value is not None and np.asarray(value).dtype.kind not in kinds:
-            raise InputError(f"{name}: {key} must hold {'numbers' if key == 'K_cam' else 'floating-point values'}, got dtype {np.asarray(value).dtype}")
+        if value is None:
+            continue
+        dtype = np.asarray(value).dtype
+        if dtype.kind not in ("iuf" if key == "K_cam" else "f"):
+            raise InputError(f"{name}: {key} must hold {'numbers' if key == 'K_cam' else 'floating-point values'}, got dtype {dtype}")
     check_array(f"{name}: K_cam", scene.K_cam, (3, 3))
     intrinsics = np.asarray(scene.K_cam, dtype=np.float64)
     if not (intrinsics[0, 0] > 0 and intrinsics[1, 1] > 0 and np.array_equal(intrinsics[2], [0.0, 0.0, 1.0])):
@@ -169,6 +171,11 @@ def scene_paths(paths) -> list[Path]:
     return found
 
 
+LIGHT_MISMATCH_M = 0.01
+"""Metres: scene and rig light positions further apart than this are reported (a scene from
+another rig, or a stale calibration); closer ones are calibration rounding."""
+
+
 def rig_for_scene(rig: Rig, scene: Scene) -> Rig:
     """The rig's display and sensor models with the scene's own lights and intrinsics.
 
@@ -185,7 +192,3 @@ def rig_for_scene(rig: Rig, scene: Scene) -> Rig:
                       "the scene's own calibration is used", DisplexWarning, stacklevel=2)
     return rig.replace(light_positions=scene.light_positions.astype(np.float64), camera=camera)
 
-
-LIGHT_MISMATCH_M = 0.01
-"""Metres: scene and rig light positions further apart than this are reported (a scene from
-another rig, or a stale calibration); closer ones are calibration rounding."""

@@ -17,7 +17,6 @@ from capture_sim.atomic import write_bytes
 from capture_sim.errors import InputError, check_array
 
 
-
 def validate_patterns(patterns, name: str = "patterns") -> np.ndarray:
     """Check a pattern set and return it as a float32 numpy array.
 

@@ -47,7 +47,7 @@ def patterns_to_logits(patterns: torch.Tensor, eps: float = 1e-3) -> torch.Tenso
     values = torch.as_tensor(patterns)
     if not values.is_floating_point() or values.dtype not in (torch.float32, torch.float64):
         values = values.to(torch.float32)
-    if 1.0 - eps >= 1.0 or eps < torch.finfo(values.dtype).eps:  # 1 - eps would round to 1: an infinite logit
+    if eps < torch.finfo(values.dtype).eps:  # 1 - eps could round to 1: an infinite logit
         raise InputError(f"eps {eps:g} is below the resolution of {values.dtype} near 1")
     return torch.logit(values.clamp(eps, 1.0 - eps))
 

@@ -106,7 +106,6 @@ class PSConfig:
             )
 
 
-
 @dataclass(frozen=True, eq=False)
 class PSResult:
     """Per-pixel result of a photometric-stereo solve (shapes (N, ...) or image-shaped (H, W, ...)).

@@ -211,11 +211,13 @@ def _solve(captures, emission, points, pixel_index, lights, falloff, config, chu
     lights = torch.as_tensor(lights).detach().to(dtype)
     config = working_config(config, dtype)
     if light_emission is not None:
-        scale = emission_scale(light_emission.to(dtype))
-        light_emission, lighting = light_emission.to(dtype) / scale, None
+        light_emission = light_emission.to(dtype)
+        scale = emission_scale(light_emission)
+        light_emission, lighting = light_emission / scale, None
     else:
-        scale = emission_scale(emission.detach().to(dtype))
-        lighting = lighting_matrix(emission.detach().to(dtype) / scale, lights)
+        emission = emission.detach().to(dtype)
+        scale = emission_scale(emission)
+        lighting = lighting_matrix(emission / scale, lights)
     count = points.shape[0] if pixel_index is None else pixel_index.numel()
     results = []
     for start in range(0, count, MAX_PIXELS_PER_SOLVE):

@@ -187,16 +187,12 @@ def _evaluate(args) -> None:
     document = run_evaluate(config)
     for row in document["scenes"]:
         print(f"{row['name']:<32} MAE {row['mae']:6.2f} deg  median {row['median']:6.2f}  invalid {row['invalid_fraction']:.3f}")
-        if row["invalid_fraction"] >= 1.0:
-            # The MAE of such a scene measures the default normal, not a reconstruction.
-            print(f"displex: warning: every pixel of {row['name']} is flagged invalid (too few, identical, dark or "
-                  "saturated captures): its MAE says nothing about the patterns", file=sys.stderr)
     print(f"mean MAE {document['mean_mae']:.2f} deg")
 
 
 def _train(args) -> None:
     from train.config_io import load_config
-    from train.learn import TrainConfig, train_patterns
+    from train.learn import TrainConfig, output_files, train_patterns
 
     overrides = {
         "num_patterns": args.num_patterns,
@@ -208,8 +204,8 @@ def _train(args) -> None:
         "rerender_weight": args.rerender_weight,
     }
     config = load_config(TrainConfig, args.config, overrides)
-    refuse_overwriting([("--out", args.out), ("config record", args.out.with_name(args.out.stem + ".config.json"))],
-                       [("--init file", config.init), ("--config file", args.config), *(("scene", scene) for scene in config.scenes)])
+    refuse_overwriting(output_files(args.out), [("--init file", config.init), ("--config file", args.config),
+                                                *(("scene", scene) for scene in config.scenes)])
     result = train_patterns(config, args.out, logdir=args.logdir, checkpoint_mode="fresh" if args.fresh else "resume")
     last = f", validation MAE {result.val_history[-1][1]:.2f} deg" if result.val_history else " (not validated: pass --val-scenes)"
     print(f"wrote learned patterns to {args.out}{last}")
@@ -217,7 +213,7 @@ def _train(args) -> None:
 
 def _search(args) -> None:
     from train.config_io import load_config
-    from train.search import SearchConfig, run_search
+    from train.search import SearchConfig, output_files, run_search
 
     overrides = {
         "family": args.family,
@@ -229,9 +225,7 @@ def _search(args) -> None:
         "scenes": None if args.scenes is None else tuple(str(p) for p in args.scenes),
     }
     config = load_config(SearchConfig, args.config, overrides)
-    written = [("--out", args.out)] + [(what, args.out.with_name(args.out.stem + suffix))
-                                        for what, suffix in (("trace", ".trace.csv"), ("trace chart", ".trace.png"), ("config record", ".config.json"))]
-    refuse_overwriting(written, [("--config file", args.config), *(("scene", scene) for scene in config.scenes)])
+    refuse_overwriting(output_files(args.out), [("--config file", args.config), *(("scene", scene) for scene in config.scenes)])
     summary = run_search(config, args.out, logdir=args.logdir)
     print(f"{summary['family']} M={summary['num_patterns']} {summary['algorithm']}: MAE {summary['start_mae']:.2f} -> "
           f"{summary['best_mae']:.2f} deg in {summary['evaluations']} evaluations ({summary['stop_reason']}); trace {summary['trace_csv']}")
@@ -363,7 +357,12 @@ def _show_warning(message, category, filename, lineno, file=None, line=None, _de
 
 def run(argv: list[str] | None = None) -> int:
     """Run one command; returns 0 on success, 2 on bad input (after printing one error line)."""
-    warnings.showwarning = _show_warning
+    with warnings.catch_warnings():  # restores the warning hook afterwards (run is also called in-process)
+        warnings.showwarning = _show_warning
+        return _run(argv)
+
+
+def _run(argv: list[str] | None) -> int:
     try:
         args = build_parser().parse_args(argv)
     except _UsageError as err:

@@ -1,6 +1,7 @@
 """`displex evaluate`: reconstruct scenes under a pattern set and report normal errors."""
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -9,7 +10,7 @@ import torch
 from tqdm import tqdm
 
 from capture_sim.atomic import save_npy, write_json
-from capture_sim.errors import InputError
+from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import DEFAULT_RIG, load_rig
 from patterns.io import check_patterns_match_rig, load_patterns
 from train.evaluate import EvalSettings, error_map, evaluate_scene
@@ -65,6 +66,10 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
         pixels = scene_pixels(scene, rig, require_normals=True)
         evaluation = evaluate_scene(pixels, patterns, settings, index)
         rows.append(evaluation.metrics)
+        if evaluation.metrics["invalid_fraction"] >= 1.0:
+            # The MAE of such a scene measures the default normal, not a reconstruction.
+            warnings.warn(f"every pixel of {evaluation.metrics['name']} is flagged invalid (too few, identical, dark or "
+                          "saturated captures): its MAE says nothing about the patterns", DisplexWarning, stacklevel=2)
         if config.out is not None:
             panels.append(_write_scene_outputs(Path(config.out), Path(scene.meta.get("file", scene.name)).stem, pixels, evaluation))
     document = {

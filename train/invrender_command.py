@@ -171,7 +171,7 @@ def _prepare_data(config: InvRenderConfig, scene, rig, pixels, split) -> _Data:
             describe = {"patterns": str(config.patterns), "M": int(values.shape[0]), "pattern_meta": pattern_meta}
     describe.update({
         "exposure": exposure,
-        "exposure_mode": "auto" if config.patterns == "olat" or setting == "auto" else "fixed",
+        "exposure_mode": "auto" if setting == "auto" else "fixed",
         "olat_exposure": olat_exposure,
         "noise": None if noise_free else {"shot": rig.noise.shot, "read_std": rig.noise.read_std, "bit_depth": rig.bit_depth},
         "saturated_fraction": float((captures >= 1.0).double().mean()),

@@ -248,6 +248,16 @@ def checkpoint_path(out: Path) -> Path:
     return out.with_name(out.stem + ".ckpt.pt")
 
 
+def config_record_path(out: Path) -> Path:
+    """``<out stem>.config.json``: the resolved config written next to a pattern file."""
+    return out.with_name(out.stem + ".config.json")
+
+
+def output_files(out: Path) -> list[tuple[str, Path]]:
+    """(what, path) of the files a run writing patterns to ``out`` leaves next to them."""
+    return [("--out", out), ("config record", config_record_path(out))]
+
+
 CHECKPOINT_KEYS = ("config", "logits", "optimiser", "scheduler", "step", "val_history")
 
 
@@ -359,7 +369,7 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
         "final_train_loss": loss_value if math.isfinite(loss_value) else None,
     }
     save_patterns(out, learned, meta)
-    write_json(out.with_name(out.stem + ".config.json"), resolved)
+    write_json(config_record_path(out), resolved)
     return TrainResult(learned, val_history, loss_value)
 
 

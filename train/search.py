@@ -42,7 +42,7 @@ from patterns.io import save_patterns
 from reconstruct.photometric_stereo import PSConfig, solve_ps
 from train.capture import capture_scene
 from train.config_io import config_to_dict
-from train.learn import normal_loss, summary_writer
+from train.learn import config_record_path, normal_loss, summary_writer
 from train.scene_pixels import ScenePixels, fixed_pixel_subsets, scene_pixels
 from train.scene_sets import resolve_scenes
 
@@ -393,6 +393,16 @@ def trace_path(out: Path) -> Path:
     return out.with_name(out.stem + ".trace.csv")
 
 
+def trace_chart_path(out: Path) -> Path:
+    """``<out stem>.trace.png`` next to the pattern file."""
+    return out.with_name(out.stem + ".trace.png")
+
+
+def output_files(out: Path) -> list[tuple[str, Path]]:
+    """(what, path) of the files a search writing patterns to ``out`` writes."""
+    return [("--out", out), ("trace", trace_path(out)), ("trace chart", trace_chart_path(out)), ("config record", config_record_path(out))]
+
+
 def trace_csv(names: list[str], history: list) -> str:
     """CSV text: index, every parameter by name, mae, best_so_far (one row per evaluation)."""
     buffer = io.StringIO()
@@ -502,8 +512,8 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
         "config": resolved,
     }
     save_patterns(out, best_patterns, meta)
-    write_json(out.with_name(out.stem + ".config.json"), resolved)
-    chart = out.with_name(out.stem + ".trace.png")
+    write_json(config_record_path(out), resolved)
+    chart = trace_chart_path(out)
     caption = (f"{meta['objective']}; {len(found.history)} evaluations, stop: {found.stop_reason}; "
                f"start {found.start_value:.2f} deg, best {found.best_value:.2f} deg")
     save_figure(trace_figure(found.history, f"NLopt {config.algorithm}: {config.family}, M = {config.num_patterns}", caption), chart)
