@@ -252,7 +252,8 @@ def sees_all_lights(normal: torch.Tensor, points: torch.Tensor, corners: torch.T
 
 
 def emission_scale(emission: torch.Tensor) -> torch.Tensor:
-    """The largest |emission| (a detached scalar; 1 for an all-zero emission).
+    """The largest |emission| of an effective emission of any shape (e.g. (M, K, 3) or an OLAT
+    stack's (K, 3)), in the emission's units, as a detached 0-d tensor; 1 for an all-zero emission.
 
     Solvers divide the emission by it and the albedo by it afterwards (``unscale_albedo``): the
     model I = a b . n is unchanged, and squared lighting terms stay inside the dtype's range for
