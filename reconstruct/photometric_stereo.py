@@ -44,10 +44,10 @@ import torch
 
 from capture_sim.errors import InputError, check_array
 from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, lighting_matrix
-from reconstruct.pixel_solve import CONDITION_CAP, Moments, alternate, implicit_step, normalised_moments, take_pixels
+from reconstruct.pixel_solve import CONDITION_CAP, Moments, alternate, implicit_step, normalised_moments, relative_residual, take_pixels
 from reconstruct.shadow_search import restarted_search
 
-FLAG_NAMES = ("dark", "saturated", "ill_conditioned", "back_facing", "bad_geometry", "not_converged")
+FLAG_NAMES = ("dark", "saturated", "ill_conditioned", "back_facing", "bad_geometry", "not_converged", "poor_fit", "grazing")
 MAX_PIXELS_PER_SOLVE = 1 << 19
 """Pixels solved together (a full 512 x 612 image is one solve; larger inputs are split)."""
 
@@ -88,8 +88,16 @@ class PSConfig:
     min_distance: float = 1e-3
     """Metres; light distances are clamped to at least this, and points within it of a
     superpixel or not in front of the camera (z <= min_distance) are flagged bad_geometry."""
+    residual_threshold: float = 0.1
+    """Pixels whose relative fit residual (``PSResult.residual``) exceeds this are flagged poor_fit:
+    the Lambertian model leaves more than 1% of the capture energy unexplained (specular light,
+    heavy noise, or a wrong shadow mask)."""
+    grazing_cos: float = 0.1
+    """Normals estimated within arccos(0.1) = 84 deg or more of the view direction (0 < n . v < this)
+    are flagged grazing: few superpixels light them and their shading barely changes with the normal."""
 
     def __post_init__(self):
+        check_flag_thresholds(self)
         if not 0 < self.damping <= 1:  # relative to the system's scale: above 1 it outweighs the data
             raise InputError(f"PSConfig.damping must lie in (0, 1], got {self.damping!r}")
         if self.max_shadow_iterations < 0 or self.max_alternations < 1 or self.line_search_steps < 0:
@@ -106,6 +114,15 @@ class PSConfig:
             )
 
 
+def check_flag_thresholds(config) -> None:
+    """Refuse a ``residual_threshold`` or ``grazing_cos`` outside [0, 1] (either config class)."""
+    name = type(config).__name__
+    for key in ("residual_threshold", "grazing_cos"):
+        value = getattr(config, key)
+        if not 0 <= value <= 1:
+            raise InputError(f"{name}: {key} must lie in [0, 1], got {value!r}")
+
+
 @dataclass(frozen=True, eq=False)
 class PSResult:
     """Per-pixel result of a photometric-stereo solve (shapes (N, ...) or image-shaped (H, W, ...)).
@@ -120,15 +137,22 @@ class PSResult:
             flags say that the estimate is degraded, not meaningless.
         condition: (...) normal condition number (``pixel_solve.normal_condition``), in
             [1, CONDITION_CAP].
+        residual: (...) RMS residual of the Lambertian fit relative to the RMS capture, in [0, 1]
+            (``pixel_solve.relative_residual``; detached): a per-pixel confidence, also reported
+            for invalid pixels (1 outside the mask of image solves).
         flags: dict of (...) bool masks named in FLAG_NAMES: dark, saturated, ill_conditioned,
             back_facing, bad_geometry (point behind the camera or on a superpixel), not_converged
-            (shadow search stopped by its caps or away from a self-consistent mask).
+            (shadow search stopped by its caps or away from a self-consistent mask), poor_fit
+            (residual above the config's ``residual_threshold``), grazing (estimated n . v below
+            the config's ``grazing_cos``). Like saturated and not_converged, poor_fit and grazing
+            pixels stay valid.
     """
 
     normal: torch.Tensor
     albedo: torch.Tensor
     valid: torch.Tensor
     condition: torch.Tensor
+    residual: torch.Tensor
     flags: dict = field(default_factory=dict)
 
 
@@ -156,29 +180,35 @@ def capture_flags(captures: torch.Tensor, config):
     return (~saturated_equation).to(captures.dtype), scale, brightest < config.dark_threshold, saturated_equation.any(dim=(0, 1))
 
 
-def finalise(normal, albedo, condition, flags: dict, field_: LightField, config) -> PSResult:
-    """Add the geometric and conditioning flags, decide validity, give invalid pixels defaults.
+def finalise(normal, albedo, condition, residual, flags: dict, field_: LightField, config) -> PSResult:
+    """Add the geometric, conditioning and fit flags, decide validity, give invalid pixels defaults.
 
     Args:
         normal: (N, 3) estimated unit normals.
         albedo: (N, 3) estimated albedo.
         condition: (N,) normal condition numbers.
+        residual: (N,) relative fit residuals.
         flags: dark, saturated and not_converged, (N,) bool each.
         field_: the pixels' light field (view directions, bad-geometry marks).
-        config: settings with ``condition_threshold``.
+        config: settings with ``condition_threshold``, ``residual_threshold`` and ``grazing_cos``.
 
     Returns:
         PSResult of the N pixels.
     """
     flags = dict(flags)
+    facing = (normal.detach() * field_.view).sum(1)
     flags["ill_conditioned"] = condition > config.condition_threshold
-    flags["back_facing"] = (normal.detach() * field_.view).sum(1) <= 0
+    flags["back_facing"] = facing <= 0
     flags["bad_geometry"] = field_.bad
+    flags["poor_fit"] = residual > config.residual_threshold
+    flags["grazing"] = (facing > 0) & (facing < config.grazing_cos)
     valid = ~(flags["dark"] | flags["ill_conditioned"] | flags["back_facing"] | flags["bad_geometry"])
     default_normal = torch.tensor([0.0, 0.0, -1.0], dtype=normal.dtype)
     normal = torch.where(valid[:, None], normal, default_normal)
     albedo = torch.where(valid[:, None], albedo, torch.zeros((), dtype=albedo.dtype))
-    return PSResult(normal=normal, albedo=albedo, valid=valid, condition=condition, flags={name: flags[name] for name in FLAG_NAMES})
+    return PSResult(
+        normal=normal, albedo=albedo, valid=valid, condition=condition, residual=residual.detach(), flags={name: flags[name] for name in FLAG_NAMES}
+    )
 
 
 class PatternEvaluator:
@@ -244,7 +274,7 @@ def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, 
         normal = normal + (graph_normal - graph_normal.detach())
     albedo = albedo * (state.moments.capture_scale / state.moments.lighting_scale)
     flags = {"dark": dark, "saturated": saturated, "not_converged": ~state.converged}
-    return finalise(normal.T, albedo.T, condition, flags, light_field, config)
+    return finalise(normal.T, albedo.T, condition, relative_residual(state.normal, state.moments), flags, light_field, config)
 
 
 def concatenate_results(results: list[PSResult], dtype) -> PSResult:
@@ -252,7 +282,7 @@ def concatenate_results(results: list[PSResult], dtype) -> PSResult:
     if not results:
         empty = torch.zeros((0, 3), dtype=dtype)
         none = torch.zeros(0, dtype=torch.bool)
-        return PSResult(empty, empty.clone(), none, torch.zeros(0, dtype=dtype), {name: none.clone() for name in FLAG_NAMES})
+        return PSResult(empty, empty.clone(), none, torch.zeros(0, dtype=dtype), torch.zeros(0, dtype=dtype), {name: none.clone() for name in FLAG_NAMES})
     if len(results) == 1:
         return results[0]
     return PSResult(
@@ -260,6 +290,7 @@ def concatenate_results(results: list[PSResult], dtype) -> PSResult:
         albedo=torch.cat([r.albedo for r in results]),
         valid=torch.cat([r.valid for r in results]),
         condition=torch.cat([r.condition for r in results]),
+        residual=torch.cat([r.residual for r in results]),
         flags={name: torch.cat([r.flags[name] for r in results]) for name in FLAG_NAMES},
     )
 
@@ -367,8 +398,8 @@ def check_image_inputs(captures, points, mask):
 def scatter_result(result: PSResult, pixel_index: torch.Tensor, height: int, width: int) -> PSResult:
     """Scatter a PSResult of the pixels ``pixel_index`` (flat indices into H * W) into images.
 
-    Pixels not listed get normal (0, 0, -1), albedo 0, valid False, condition CONDITION_CAP and
-    all flags False. Differentiable in the normals and albedo.
+    Pixels not listed get normal (0, 0, -1), albedo 0, valid False, condition CONDITION_CAP,
+    residual 1 and all flags False. Differentiable in the normals and albedo.
     """
     size = height * width
 
@@ -382,6 +413,7 @@ def scatter_result(result: PSResult, pixel_index: torch.Tensor, height: int, wid
         albedo=scatter(result.albedo, 0.0),
         valid=scatter(result.valid, False),
         condition=scatter(result.condition, CONDITION_CAP),
+        residual=scatter(result.residual, 1.0),
         flags={name: scatter(value, False) for name, value in result.flags.items()},
     )
 

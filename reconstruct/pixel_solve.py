@@ -247,6 +247,27 @@ def residual(normal: torch.Tensor, moments: Moments, damping: float) -> torch.Te
     return (moments.capture_energy - torch.relu(numerator).square() / denominator).sum(0)
 
 
+def relative_residual(normal: torch.Tensor, moments: Moments) -> torch.Tensor:
+    """(N,) RMS residual of the least-squares Lambertian fit of normals (3, N), relative to the RMS
+    capture, in [0, 1]: 0 for a perfect fit, 1 when the model explains none of the captures (and
+    for pixels without captured light). ``moments`` must be built from the normals' own shadow
+    masks.
+
+    Undamped, unlike the solver's objective (``residual``), whose damping adds a floor of order
+    sqrt(damping); the cancellation left costs sqrt(eps) of the dtype (3e-4 in float32). A
+    confidence measure: specular highlights, noise and wrong shadow masks all raise it.
+    """
+    normal = normal.detach()
+    tiny = torch.finfo(normal.dtype).tiny
+    projection = (normal[None] * moments.projection.detach()).sum(1)  # (3, N): n . r_c
+    shading = quadratic_form(moments.moment.detach(), normal, normal)  # (3, N): n^T B_c n
+    explained = torch.where(shading > tiny, torch.relu(projection).square() / shading.clamp_min(tiny), torch.zeros_like(shading))
+    energy = moments.capture_energy.detach().sum(0)
+    unexplained = (energy - explained.sum(0)).clamp_min(0)
+    ratio = (unexplained / energy.clamp_min(tiny)).clamp_max(1.0)
+    return torch.where(energy > 0, ratio.sqrt(), torch.ones_like(ratio))
+
+
 def alternation(albedo: torch.Tensor, moments: Moments, damping: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Phi: albedo -> normal given albedo -> albedo given that normal. Returns (albedo, normal)."""
     normal = normal_step(albedo, moments, damping)

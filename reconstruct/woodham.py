@@ -31,6 +31,7 @@ from reconstruct.photometric_stereo import (
     PatternEvaluator,
     PSResult,
     capture_flags,
+    check_flag_thresholds,
     check_image_inputs,
     check_masked_inputs,
     concatenate_results,
@@ -40,7 +41,7 @@ from reconstruct.photometric_stereo import (
     unscale_albedo,
     working_config,
 )
-from reconstruct.pixel_solve import Moments, albedo_step, damped_solve, scaled_moments, unit
+from reconstruct.pixel_solve import Moments, albedo_step, damped_solve, relative_residual, scaled_moments, unit
 from reconstruct.shadow_search import restarted_search
 
 MAX_PIXELS_PER_SOLVE = 1 << 19
@@ -75,8 +76,13 @@ class WoodhamConfig:
     min_distance: float = 1e-3
     """Metres; distances are clamped to at least this; closer points or points with
     z <= min_distance are flagged bad_geometry."""
+    residual_threshold: float = 0.1
+    """Pixels whose relative fit residual exceeds this are flagged poor_fit (as ``PSConfig``)."""
+    grazing_cos: float = 0.1
+    """Valid normals with 0 < n . v below this are flagged grazing (as ``PSConfig``)."""
 
     def __post_init__(self):
+        check_flag_thresholds(self)
         if not self.damping > 0 or not 0 <= self.shadow_threshold < 1:
             raise InputError("WoodhamConfig: damping must be positive and shadow_threshold in [0, 1)")
         if self.max_shadow_iterations < 0 or self.line_search_steps < 0:
@@ -164,7 +170,7 @@ def _solve_block(evaluator, light_field: LightField, config, dark_and_saturated=
     dark, saturated = evaluator.capture_flags() if dark_and_saturated is None else dark_and_saturated
     albedo = state.albedo * (state.moments.capture_scale / state.moments.lighting_scale)
     flags = {"dark": dark, "saturated": saturated, "not_converged": ~state.converged}
-    return finalise(state.normal.T, albedo.T, condition, flags, light_field, config)
+    return finalise(state.normal.T, albedo.T, condition, relative_residual(state.normal, state.moments), flags, light_field, config)
 
 
 def _olat_emission(emission: torch.Tensor):

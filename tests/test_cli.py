@@ -225,10 +225,13 @@ def test_evaluate_json_matches_saved_normal_maps(tmp_path, scene_file):
     document = json.loads(report.read_text())
     row = document["scenes"][0]
     assert {"name", "mae", "median", "under_5", "under_10", "under_20", "under_30", "invalid_fraction", "seconds"} <= set(row)
+    assert {"poor_fit", "grazing", "ill_conditioned"} <= set(row["flagged"]) and all(0 <= share <= 1 for share in row["flagged"].values())
     with np.load(scene_file) as data:
         truth, mask = data["normal"].astype(np.float64), data["mask"]
     estimate = np.load(out / "blob_normal.npy").astype(np.float64)
     assert np.load(out / "blob_valid.npy").shape == mask.shape
+    residual = np.load(out / "blob_residual.npy")
+    assert residual.shape == mask.shape and residual.dtype == np.float32 and ((residual >= 0) & (residual <= 1)).all()
     cosine = np.clip((estimate[mask] * truth[mask]).sum(-1) / np.linalg.norm(estimate[mask], axis=-1) / np.linalg.norm(truth[mask], axis=-1), -1, 1)
     assert abs(np.degrees(np.arccos(cosine)).mean() - row["mae"]) < 0.01
     assert abs(document["mean_mae"] - row["mae"]) < 1e-9

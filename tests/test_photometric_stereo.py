@@ -195,3 +195,36 @@ def test_bad_inputs_raise():
         solve_ps(captures, emission, points, lights, Falloff("fitted", a=-5.458, b=14.7449))  # negative at 0.5 m
     with pytest.raises(InputError):
         solve_ps_image(captures[:, :, None], emission, points[:, None], torch.ones(6, 1), lights, falloff)  # float mask
+
+
+def _render_lambertian(points, normal, albedo, lights, emission):
+    """(M, N, 3) captures a_c sum_k E[m, k, c] max(0, l_k . n) / d_k^2, written out here."""
+    offset = lights[None] - points[:, None]  # (N, K, 3)
+    distance = offset.norm(dim=-1)
+    shading = ((offset / distance[..., None]) * normal[:, None]).sum(-1).clamp_min(0) / distance**2
+    return torch.einsum("mkc,nk,nc->mnc", emission, shading, albedo)
+
+
+def test_residual_is_the_relative_misfit_of_the_fitted_model(sphere):
+    captures, emission = _sphere_captures(sphere, "initial_mono_gradient")
+    flat, points, _ = _flat(sphere, captures)
+    clean = solve_ps(flat, emission, points, sphere.lights, Falloff())
+    assert clean.residual.max() < 1e-4 and not clean.flags["poor_fit"].any()
+    # Light no normal explains (like a highlight) in the first capture; scaled to stay unsaturated.
+    disturbed = flat.clone()
+    disturbed[0] *= 1.5
+    disturbed, emission = disturbed * 0.6, emission * 0.6
+    result = solve_ps(disturbed, emission, points, sphere.lights, Falloff())
+    rendered = _render_lambertian(points, result.normal, result.albedo, sphere.lights, emission)
+    expected = (disturbed - rendered).square().sum((0, 2)).sqrt() / disturbed.square().sum((0, 2)).sqrt()
+    assert result.valid.float().mean() > 0.9
+    torch.testing.assert_close(result.residual[result.valid], expected[result.valid], rtol=1e-4, atol=1e-6)
+    assert (result.flags["poor_fit"] == (result.residual > PSConfig().residual_threshold)).all()
+    assert (result.flags["poor_fit"] & result.valid).float().mean() > 0.2, "poor_fit does not invalidate"
+
+
+@pytest.mark.parametrize("key", ["residual_threshold", "grazing_cos"])
+@pytest.mark.parametrize("value", [-0.1, 1.5, float("nan")])
+def test_flag_thresholds_outside_the_unit_interval_are_refused(key, value):
+    with pytest.raises(InputError, match=key):
+        PSConfig(**{key: value})

@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from capture_sim.rig import Falloff
-from reconstruct.photometric_stereo import FLAG_NAMES, solve_ps
+from reconstruct.metrics import angular_error_deg
+from reconstruct.photometric_stereo import FLAG_NAMES, PSConfig, solve_ps
 from reconstruct.woodham import solve_woodham, solve_woodham_olat
 from tests.reconstruct_scenes import emission_of, load_patterns, sphere_scene
 
@@ -31,7 +32,7 @@ def _solve_with_gradients(captures, emission, points, lights):
     emission = emission.clone().requires_grad_(True)
     result = solve_ps(captures, emission, points, lights, Falloff())
     (result.normal.sum() + result.albedo.sum()).backward()
-    for name, value in (("normal", result.normal), ("albedo", result.albedo), ("condition", result.condition),
+    for name, value in (("normal", result.normal), ("albedo", result.albedo), ("condition", result.condition), ("residual", result.residual),
                         ("d/dcaptures", captures.grad), ("d/demission", emission.grad)):
         assert torch.isfinite(value).all(), name
     assert set(result.flags) == set(FLAG_NAMES)
@@ -92,25 +93,44 @@ def test_single_colour_pattern_is_ill_conditioned(problem):
     assert result.flags["ill_conditioned"].all()
 
 
-def test_grazing_normals():
+def _grazing_plane(tilt_deg: float, sideways: tuple, patterns: str):
+    """Points of a plane through (0, 0, 0.5) whose normal is tilted ``tilt_deg`` from the optical
+    axis towards ``sideways`` (x, y), its true normal and noise-free captures."""
     scene = sphere_scene(16, 20)
-    tilt = math.radians(88.0)
-    normal = torch.tensor([math.sin(tilt), 0.0, -math.cos(tilt)], dtype=torch.float64)
+    tilt = math.radians(tilt_deg)
+    normal = torch.tensor([sideways[0] * math.sin(tilt), sideways[1] * math.sin(tilt), -math.cos(tilt)], dtype=torch.float64)
     rays = scene.points / scene.points[..., 2:]
-    # Intersect the pixel rays with a plane through (0, 0, 0.5) with the grazing normal.
     depth = (0.5 * normal[2]) / (rays @ normal)
     points = (depth[..., None] * rays).reshape(-1, 3)
-    keep = (points[:, 2] > 0.3) & (points[:, 2] < 0.8)
-    points = points[keep]
+    points = points[(points[:, 2] > 0.3) & (points[:, 2] < 0.8)]
     offset = scene.lights[:, None] - points[None]
     distance = offset.norm(dim=-1)
     shading = ((offset / distance[..., None]) @ normal).clamp_min(0) / distance**2 * 0.2
-    emission = emission_of(scene, load_patterns("initial_mono_gradient"))
+    emission = emission_of(scene, load_patterns(patterns))
     captures = torch.einsum("mkc,kn->mnc", emission, shading)
     scale = 0.9 / float(captures.max())
-    result = _solve_with_gradients(captures * scale, emission * scale, points, scene.lights)
+    return points, normal, captures * scale, emission * scale, scene.lights
+
+
+def test_grazing_normals():
+    points, normal, captures, emission, lights = _grazing_plane(86.0, (1.0, 0.0), "initial_mono_gradient")
+    result = _solve_with_gradients(captures, emission, points, lights)
     view = -points / points.norm(dim=-1, keepdim=True)
-    assert ((result.normal * view).sum(-1)[result.valid] > 0).all()
+    facing = (result.normal * view).sum(-1)
+    assert (facing[result.valid] > 0).all()
+    assert (result.flags["grazing"] == (result.valid & (facing < PSConfig().grazing_cos))).all()
+    truly_grazing = (normal * view).sum(-1) < 0.09  # margin for the estimate's rounding
+    assert truly_grazing.any() and result.flags["grazing"][truly_grazing & result.valid].all()
+
+
+def test_wrong_grazing_solutions_are_flagged():
+    # Noise-free, and yet the shadow search settles on normals 80+ deg off for some of these
+    # pixels: nearly every superpixel is shadowed. They must not pass as good estimates.
+    points, normal, captures, emission, lights = _grazing_plane(88.0, (0.0, 1.0), "initial_tri_random_4")
+    result = _solve_with_gradients(captures, emission, points, lights)
+    wrong = result.valid & (angular_error_deg(result.normal.detach(), normal.expand_as(result.normal)) > 5)
+    assert wrong.any(), "the case no longer exercises a wrong solution"
+    assert (result.flags["poor_fit"] | result.flags["grazing"])[wrong].all()
 
 
 def test_ten_times_the_default_noise(problem):

@@ -34,6 +34,9 @@ def test_olat_stack_recovers_normals_and_albedo(sphere):
     assert result.valid[sphere.mask].all() and not result.valid[~sphere.mask].any()
     assert normal_metrics(result.normal, sphere.normal, sphere.mask)["mae"] < LIMIT_OLAT_DEG
     torch.testing.assert_close(result.albedo[sphere.mask], sphere.albedo[sphere.mask], rtol=1e-4, atol=1e-8)
+    # Noise-free Lambertian data: the fit explains the captures; outside the mask nothing is fitted.
+    assert result.residual[sphere.mask].max() < 1e-4 and not result.flags["poor_fit"].any()
+    assert (result.residual[~sphere.mask] == 1).all()
 
 
 def test_olat_entry_point_matches_identity_emission(sphere):

@@ -86,8 +86,9 @@ def evaluate_scene(pixels: ScenePixels, patterns, settings: EvalSettings, scene_
             auto exposure still looks at every masked pixel.
 
     Returns:
-        SceneEvaluation with metrics {mae, median, under_5, ..., invalid_fraction, seconds, exposure}
-        and the (N or P, ...) reconstruction.
+        SceneEvaluation with metrics {mae, median, under_5, ..., invalid_fraction, flagged (the
+        fraction of pixels carrying each of the solver's flags), seconds, exposure} and the
+        (N or P, ...) reconstruction.
     """
     if pixels.normal is None:
         raise InputError(f"scene {pixels.name} has no ground-truth normals to evaluate against")
@@ -116,6 +117,7 @@ def evaluate_scene(pixels: ScenePixels, patterns, settings: EvalSettings, scene_
     everywhere = torch.ones(truth.shape[0], dtype=torch.bool)
     metrics = {"name": pixels.name, **normal_metrics(result.normal, truth, everywhere)}
     metrics["invalid_fraction"] = float((~result.valid).float().mean())
+    metrics["flagged"] = {name: float(flag.float().mean()) for name, flag in result.flags.items()}
     metrics["seconds"] = seconds
     metrics["exposure"] = exposure
     return SceneEvaluation(metrics, result, exposure)
@@ -128,6 +130,11 @@ def mean_mae(evaluations: list[SceneEvaluation]) -> float:
 
 def error_map(pixels: ScenePixels, result: PSResult) -> np.ndarray:
     """(H, W) angular error in degrees, NaN outside the mask (for plotting)."""
-    errors = np.full(pixels.mask.shape, np.nan, dtype=np.float32)
-    errors[pixels.mask] = angular_error_deg(result.normal, pixels.normal).numpy()
-    return errors
+    return masked_map(pixels, angular_error_deg(result.normal, pixels.normal))
+
+
+def masked_map(pixels: ScenePixels, values: torch.Tensor) -> np.ndarray:
+    """(H, W) float32 image of per-masked-pixel ``values`` (N,), NaN outside the mask."""
+    image = np.full(pixels.mask.shape, np.nan, dtype=np.float32)
+    image[pixels.mask] = values.detach().float().numpy()
+    return image

@@ -13,7 +13,7 @@ from capture_sim.atomic import save_npy, write_json
 from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import DEFAULT_RIG, load_rig
 from patterns.io import check_patterns_match_rig, load_patterns
-from train.evaluate import EvalSettings, error_map, evaluate_scene
+from train.evaluate import EvalSettings, error_map, evaluate_scene, masked_map
 from train.figures import image_grid, normal_to_rgb, save_figure
 from train.scene_pixels import scene_pixels
 from train.scene_sets import resolve_scenes
@@ -96,13 +96,17 @@ def _write_scene_outputs(out: Path, stem: str, pixels, evaluation) -> tuple:
     valid[pixels.mask] = evaluation.result.valid.numpy()
     save_npy(out / f"{stem}_normal.npy", normal.astype(np.float32))
     save_npy(out / f"{stem}_valid.npy", valid)
+    residual = masked_map(pixels, evaluation.result.residual)
+    save_npy(out / f"{stem}_residual.npy", np.nan_to_num(residual, nan=1.0))
     errors = error_map(pixels, evaluation.result)
     fig = image_grid(
-        [normal_to_rgb(normal), normal_to_rgb(truth), errors],
-        ["estimated normals", "ground truth", f"angular error (MAE {evaluation.metrics['mae']:.2f} deg)"],
+        [normal_to_rgb(normal), normal_to_rgb(truth), errors, residual],
+        ["estimated normals", "ground truth", f"angular error (MAE {evaluation.metrics['mae']:.2f} deg)", "relative fit residual"],
         f"{pixels.name}",
-        "Normals shown as RGB = ((x, -y, -z) + 1) / 2 in the camera frame; error in degrees inside the mask.",
-        columns=3,
+        "Normals shown as RGB = ((x, -y, -z) + 1) / 2 in the camera frame; error in degrees inside the mask. "
+        "Residual: RMS misfit of the Lambertian model over the RMS capture, a confidence the solver computes without "
+        "the truth (specular light and wrong shadow masks raise it).",
+        columns=4,
         cmap="magma",
         colorbar_label=None,
     )
