@@ -47,6 +47,7 @@ Fit (Choi et al., ICCV 2025), with the changes marked (*):
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import warnings
@@ -439,8 +440,8 @@ class FitConfig:
     far_field: bool = False
     """Shade with the centroid's light directions and distances (see module docstring)."""
     initial_specular: float = 0.5
-    """Starting rho_s of every basis (in the scene's radiometric units) when ``least_squares_init``
-    is off."""
+    """Starting rho_s of every basis when ``least_squares_init`` is off, in the fit's albedo units
+    (the scene's, or scaled to order one by ``albedo_unit``)."""
     least_squares_init: bool = True
     """Start the basis albedos (rho_d and rho_s) from their least-squares values at the initial
     normals, clusters and roughness (``least_squares_albedos``) instead of the cluster medians and
@@ -653,7 +654,8 @@ def initial_estimate(captures, emission, points, lights, falloff, ps_config: PSC
     (dark, ill-conditioned...) take the mean normal and albedo of valid 4-neighbours, grown inwards
     (``fill_from_neighbours``) when the image grid is given; otherwise, or where no valid pixel is
     reachable, they face the camera with the median albedo. Every normal is then tilted into
-    n . v >= ``visible_margin`` (``into_visible_hemisphere``).
+    n . v >= ``visible_margin`` (``into_visible_hemisphere``). The solve does not depend on the
+    emission's units.
 
     Args:
         captures: (M, N, 3) captures in [0, 1].
@@ -670,6 +672,11 @@ def initial_estimate(captures, emission, points, lights, falloff, ps_config: PSC
         InitialEstimate (float32); ``valid`` marks the pixels photometric stereo solved itself.
     """
     start = time.perf_counter()
+    # Solve with an emission peak near one (a power of two: exact), so that float32 moments
+    # neither under- nor overflow whatever its units; the albedo scales back exactly.
+    peaks = emission.detach().amax()
+    peak = 2.0 ** round(math.log2(float(peaks))) if float(peaks) > 0 else 1.0
+    emission = emission / peak
     with torch.no_grad():
         plan = EmissionPlan(emission.detach())
         if plan.gain is not None:
@@ -692,7 +699,7 @@ def initial_estimate(captures, emission, points, lights, falloff, ps_config: PSC
     fill = albedo[valid].median(0).values if bool(valid.any()) else torch.full((3,), 0.5)
     albedo = torch.where(filled[:, None], albedo, fill)
     normal = into_visible_hemisphere(normal, view, visible_margin)
-    return InitialEstimate(normal, albedo, valid, time.perf_counter() - start)
+    return InitialEstimate(normal, albedo / peak, valid, time.perf_counter() - start)
 
 
 def hue_saturation_features(albedo: torch.Tensor) -> np.ndarray:
@@ -1041,7 +1048,11 @@ def fit_inverse_render(
     Args:
         captures: (M, N, 3) captures of the masked pixels in [0, 1] (1 = saturated).
         emission: (M, K, 3) effective emission E = exposure * scale * (P + B) ** gamma, so that
-            noise-free I = sum_k E O; for an OLAT stack, exposure times one-hot rows.
+            noise-free I = sum_k E O; for an OLAT stack, exposure times one-hot rows. Any units
+            within float32: where they put the typical albedo outside [2^-10, 2^10], the fit runs
+            in units scaled by a power of two (``albedo_unit``) so that its settings in albedo
+            units (``initial_specular``, the floors) keep their meaning, and the albedos returned
+            are in the caller's units.
         points: (N, 3) surface points, metres, camera frame.
         lights: (K, 3) superpixel positions, metres, camera frame.
         falloff: distance falloff (positive and finite over the scene).
@@ -1057,24 +1068,60 @@ def fit_inverse_render(
         InverseRenderResult.
 
     Raises:
-        InputError: wrong shapes or non-finite inputs.
+        InputError: wrong shapes, non-finite inputs, or emission beyond the float32 range.
     """
     _check_fit_inputs(captures, emission, points, lights, pixel_index, height, width)
     points, lights = points.float(), lights.float()
     captures, emission = captures.detach().float(), emission.detach().float()
+    if not bool(torch.isfinite(emission).all()):
+        raise InputError("emission exceeds the float32 range the inverse renderer works in")
     if warm_start is not None:
         if warm_start.num_basis != config.num_basis or warm_start.specular_enabled != config.specular:
             raise InputError("warm_start must have the same J and specular setting as the config")
         if warm_start.normal.shape[0] != captures.shape[1]:
             raise InputError("warm_start has a different number of pixels than the captures")
+        unit = albedo_unit(torch.cat([warm_start.diffuse.flatten(), warm_start.specular.flatten()]))
         start = time.perf_counter()
-        model = BasisModel.from_result(warm_start, config)
+        model = BasisModel.from_result(scale_albedos(warm_start, 1.0 / unit), config)
     else:
         if initial is None:
             initial = initial_estimate(captures, emission, points, lights, falloff, pixel_index=pixel_index, height=height, width=width)
+        unit = albedo_unit(initial.albedo[initial.valid].amax(-1) if bool(initial.valid.any()) else initial.albedo.amax(-1))
+        initial = dataclasses.replace(initial, albedo=initial.albedo / unit)
+    # Fit in albedo units near one (the settings and floors are in such units), whatever the
+    # emission's units; images are unchanged, the albedos are scaled back below.
+    emission = emission * unit
+    if warm_start is None:
         start = time.perf_counter()
         model = _initial_model(captures, emission, points, lights, falloff, initial, config)
-    return _optimise(model, captures, emission, points, lights, falloff, pixel_index, height, width, config, log, start)
+    result = _optimise(model, captures, emission, points, lights, falloff, pixel_index, height, width, config, log, start)
+    return scale_albedos(result, unit)
+
+
+ALBEDO_BAND = 2.0**10
+"""Albedos whose typical value lies within a factor of this of one are fitted as given."""
+
+
+def albedo_unit(albedo: torch.Tensor) -> float:
+    """A power of two that brings albedos (any shape) to order one: 1 when their 90th percentile
+    lies in [1 / ALBEDO_BAND, ALBEDO_BAND] (physical units: unchanged), else its nearest power of
+    two. Albedo is relative to the emission, so emission in other units (a raw exposure, another
+    radiometric unit) shifts it by the same factor."""
+    values = albedo.detach().double().flatten()
+    values = values[torch.isfinite(values) & (values > 0)]
+    if values.numel() == 0:
+        return 1.0
+    typical = float(values.quantile(0.9))
+    if 1.0 / ALBEDO_BAND <= typical <= ALBEDO_BAND:
+        return 1.0
+    return 2.0 ** round(math.log2(typical))
+
+
+def scale_albedos(result: "InverseRenderResult", factor: float) -> "InverseRenderResult":
+    """``result`` with its diffuse and specular albedos multiplied by ``factor``."""
+    if factor == 1.0:
+        return result
+    return dataclasses.replace(result, diffuse=result.diffuse * factor, specular=result.specular * factor)
 
 
 def _initial_model(captures, emission, points, lights, falloff, initial: InitialEstimate, config: FitConfig) -> "BasisModel":

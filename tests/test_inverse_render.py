@@ -406,6 +406,24 @@ def test_fit_on_degenerate_captures_stays_finite(small_scene):
         assert bool(torch.isfinite(value).all())
 
 
+def test_emission_in_any_units_gives_the_same_fit(small_scene):
+    """Emission scaled by 1e-20 or 1e20 (another radiometric unit) changes the albedos by the same
+    factor and nothing else; before, 1e6 gave 39 deg normals and 1e20 NaN."""
+    scene, pixels = small_scene
+    captures, emission, *_ = _olat_fit_data(pixels)
+    config = FitConfig(num_basis=2, iterations=5)
+    arguments = (pixels.points, pixels.lights(), Falloff(), pixels.transport.pixel_index, scene.height, scene.width, config)
+    natural = fit_inverse_render(captures, emission, *arguments)
+    for factor in (1e-20, 1e20):
+        scaled = fit_inverse_render(captures, emission * factor, *arguments)
+        torch.testing.assert_close(scaled.normal, natural.normal, rtol=1e-4, atol=1e-4)
+        torch.testing.assert_close(scaled.diffuse * factor, natural.diffuse, rtol=1e-4, atol=1e-6)
+        torch.testing.assert_close(scaled.specular * factor, natural.specular, rtol=1e-4, atol=1e-6)
+        torch.testing.assert_close(torch.tensor(scaled.rmse_history), torch.tensor(natural.rmse_history), rtol=1e-4, atol=1e-6)
+    with pytest.raises(InputError, match="float32 range"):
+        fit_inverse_render(captures, emission.double() * 1e40, *arguments)
+
+
 def _stability_patterns(case, rig):
     generator = torch.Generator().manual_seed(5)
     if case == "one_pattern":
