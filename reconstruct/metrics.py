@@ -41,6 +41,10 @@ def angular_error_deg(estimate: torch.Tensor, truth: torch.Tensor) -> torch.Tens
     check_array("estimate", estimate, ("...", 3))
     check_array("truth", truth, tuple(estimate.shape))
     first, second = estimate.double(), truth.double()
+    # The angle ignores length: bring both to components of at most 1 so no square over- or
+    # underflows (vectors of norm 1e200 gave NaN gradients).
+    first = first / first.detach().abs().amax(-1, keepdim=True).clamp_min(torch.finfo(torch.float64).tiny)
+    second = second / second.detach().abs().amax(-1, keepdim=True).clamp_min(torch.finfo(torch.float64).tiny)
     # The tiny offset keeps the gradient finite where the vectors are parallel.
     sine = torch.sqrt(torch.linalg.cross(first, second).square().sum(-1) + 1e-300)
     cosine = (first * second).sum(-1)

@@ -29,6 +29,17 @@ def test_angular_error_gradient_is_finite():
     assert torch.isfinite(estimate.grad).all()
 
 
+@pytest.mark.parametrize("length", [1e-200, 1e200])
+def test_angular_error_does_not_depend_on_length(length):
+    estimate = torch.tensor([[0.0, 1.0, -1.0], [0.3, 0.1, -1.0]], dtype=torch.float64)
+    truth = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]], dtype=torch.float64)
+    scaled = (estimate * length).requires_grad_(True)
+    error = angular_error_deg(scaled, truth * length)
+    torch.testing.assert_close(error, angular_error_deg(estimate, truth))
+    error.sum().backward()
+    assert torch.isfinite(scaled.grad).all()
+
+
 def test_normal_metrics_hand_values():
     truth = torch.tensor([0.0, 0.0, -1.0]).expand(2, 3, 3)
     degrees = torch.tensor([[1.0, 4.0, 6.0], [15.0, 25.0, 80.0]])
