@@ -29,6 +29,13 @@ def test_angular_error_gradient_is_finite():
     assert torch.isfinite(estimate.grad).all()
 
 
+def test_angular_error_gradcheck():
+    generator = torch.Generator().manual_seed(0)
+    estimate = torch.randn(5, 3, generator=generator, dtype=torch.float64, requires_grad=True)
+    truth = torch.randn(5, 3, generator=generator, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(angular_error_deg, (estimate, truth))
+
+
 @pytest.mark.parametrize("length", [1e-200, 1e200])
 def test_angular_error_does_not_depend_on_length(length):
     estimate = torch.tensor([[0.0, 1.0, -1.0], [0.3, 0.1, -1.0]], dtype=torch.float64)
