@@ -76,6 +76,7 @@ class LightField:
         # The unshadowed weights f_k / d_k are computed once and kept (N x K floats): every later
         # evaluation then costs a shadow test and a matrix product instead of the distances again.
         self.weights, self.bad = self._unshadowed_weights(falloff, min_distance)
+        self._corners = lights[extreme_lights(lights)]
 
     @property
     def num_pixels(self) -> int:
@@ -120,6 +121,11 @@ class LightField:
         points = self.points[rows]
         return torch.addmm(-(points * normal.T).sum(1, keepdim=True), normal.T, self._lights_t).gt_(0)
 
+    def _sees_all(self, rows, normal: torch.Tensor) -> bool:
+        """Whether every pixel of ``rows`` with normals (3, n) sees every light (``sees_all_lights``:
+        a test on the few hull lights that never claims a shadowed light is lit)."""
+        return bool(sees_all_lights(normal, self.points[rows].T, self._corners).all())
+
     def block_rows(self, index, block_size: int | None = None):
         """Yield (start, stop, rows): blocks of entries start:stop of ``index`` ((n,) long pixel
         indices, or None for all N pixels) and their pixel rows (a slice or index tensor).
@@ -139,12 +145,19 @@ class LightField:
         have different shadow masks. Compared block by block, never stored."""
         differ = torch.empty(first.shape[1], dtype=torch.bool)
         for start, stop, rows in self.cache_rows(index):
+            if self._sees_all(rows, first[:, start:stop]) and self._sees_all(rows, second[:, start:stop]):
+                differ[start:stop] = False  # both masks are all ones
+                continue
             lit = self._lit(rows, first[:, start:stop])
             differ[start:stop] = lit.ne_(self._lit(rows, second[:, start:stop])).amax(dim=1) > 0
         return differ
 
     def shadowed_weights(self, rows, normal: torch.Tensor) -> torch.Tensor:
-        """(n, K) s_k f_k / d_k of pixels ``rows`` (slice or indices) with normals (3, n)."""
+        """(n, K) s_k f_k / d_k of pixels ``rows`` (slice or indices) with normals (3, n); a view
+        of the stored weights (not to be modified) when every pixel of the block sees every
+        light, which skips the (n, K) shadow test for most pixels facing the display."""
+        if self._sees_all(rows, normal):
+            return self.weights[rows]
         return self._lit(rows, normal).mul_(self.weights[rows])
 
     def vector_blocks(self, index, normal: torch.Tensor, lighting: torch.Tensor):

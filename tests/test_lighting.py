@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from capture_sim.errors import InputError
-from capture_sim.rig import load_rig
-from reconstruct.lighting import extreme_lights, sees_all_lights
+from capture_sim.rig import Falloff, load_rig
+from reconstruct.lighting import LightField, extreme_lights, sees_all_lights
 
 
 def test_a_flat_grid_of_lights_has_its_four_corners_as_hull():
@@ -32,6 +32,28 @@ def test_sees_all_lights_never_claims_a_shadowed_light_in_front():
         exact = ((lights.to(dtype) @ normal.to(dtype)) > (normal.to(dtype) * points.to(dtype)).sum(0)).all(0)
         assert not bool((claimed & ~exact).any())
         assert float(claimed.double().mean()) > 0.2 and bool((exact & ~claimed).double().mean() < 0.01)
+
+
+def test_light_field_skips_the_shadow_test_only_where_it_changes_nothing():
+    lights = load_rig().lights(torch.float64)
+    generator = torch.Generator().manual_seed(1)
+    count = 3000
+    points = torch.stack([0.1 * torch.randn(count, generator=generator), 0.1 * torch.randn(count, generator=generator), 0.5 + 0.05 * torch.randn(count, generator=generator)], dim=1).double()
+    points[:500, :2] *= 0.1  # near the optical axis: facing the camera, they see every light
+    field = LightField(points, lights, Falloff(), 1e-3, block_size=1000)
+    view = field.view.T.contiguous()  # every pixel sees every light: whole blocks skip the test
+    tilted = torch.randn(3, count, generator=generator, dtype=torch.float64)
+    tilted[2] = -tilted[2].abs()
+    tilted = tilted / tilted.norm(dim=0)  # many pixels have lights behind their tangent plane
+    assert field._sees_all(slice(0, 500), view[:, :500]) and not field._sees_all(slice(0, 500), tilted[:, :500])
+    for normal in (view, tilted):
+        exact = ((lights @ normal) > (normal * points.T).sum(0)).T.double() * field.weights
+        for rows in (slice(0, 500), torch.arange(0, count, 7)):
+            columns = rows if isinstance(rows, slice) else rows
+            assert torch.equal(field.shadowed_weights(rows, normal[:, columns]), exact[rows])
+    exact_differ = (((lights @ view) > (view * points.T).sum(0)) != ((lights @ tilted) > (tilted * points.T).sum(0))).any(0)
+    assert torch.equal(field.masks_differ(None, view, tilted), exact_differ) and exact_differ.any()
+    assert not field.masks_differ(None, view, view).any()
 
 
 def test_bad_inputs_are_refused():
