@@ -672,11 +672,13 @@ def initial_estimate(captures, emission, points, lights, falloff, ps_config: PSC
         InitialEstimate (float32); ``valid`` marks the pixels photometric stereo solved itself.
     """
     start = time.perf_counter()
+    check_array("emission", emission, ("M", "K", 3), value_range=(0.0, math.inf))
+    if emission.shape[0] == 0:
+        raise InputError("initial_estimate needs at least one pattern")
     # Solve with an emission peak near one (a power of two: exact), so that float32 moments
     # neither under- nor overflow whatever its units; the albedo scales back exactly.
-    peaks = emission.detach().amax()
-    peak = 2.0 ** round(math.log2(float(peaks))) if float(peaks) > 0 else 1.0
-    emission = emission / peak
+    peak = 2.0 ** math.frexp(float(emission.detach().amax()))[1] if bool((emission > 0).any()) else 1.0
+    emission = (emission.double() / peak).to(emission.dtype)
     with torch.no_grad():
         plan = EmissionPlan(emission.detach())
         if plan.gain is not None:
@@ -699,7 +701,7 @@ def initial_estimate(captures, emission, points, lights, falloff, ps_config: PSC
     fill = albedo[valid].median(0).values if bool(valid.any()) else torch.full((3,), 0.5)
     albedo = torch.where(filled[:, None], albedo, fill)
     normal = into_visible_hemisphere(normal, view, visible_margin)
-    return InitialEstimate(normal, albedo / peak, valid, time.perf_counter() - start)
+    return InitialEstimate(normal, (albedo.double() / peak).float(), valid, time.perf_counter() - start)
 
 
 def hue_saturation_features(albedo: torch.Tensor) -> np.ndarray:
@@ -1049,10 +1051,10 @@ def fit_inverse_render(
         captures: (M, N, 3) captures of the masked pixels in [0, 1] (1 = saturated).
         emission: (M, K, 3) effective emission E = exposure * scale * (P + B) ** gamma, so that
             noise-free I = sum_k E O; for an OLAT stack, exposure times one-hot rows. Any units
-            within float32: where they put the typical albedo outside [2^-10, 2^10], the fit runs
-            in units scaled by a power of two (``albedo_unit``) so that its settings in albedo
-            units (``initial_specular``, the floors) keep their meaning, and the albedos returned
-            are in the caller's units.
+            with a peak in EMISSION_RANGE: the fit runs in albedo units scaled by a power of two
+            (``albedo_unit``), so that its settings in albedo units (``initial_specular``, the
+            floors) mean the same whatever the emission's units, and returns albedos in the
+            caller's units.
         points: (N, 3) surface points, metres, camera frame.
         lights: (K, 3) superpixel positions, metres, camera frame.
         falloff: distance falloff (positive and finite over the scene).
@@ -1068,13 +1070,15 @@ def fit_inverse_render(
         InverseRenderResult.
 
     Raises:
-        InputError: wrong shapes, non-finite inputs, or emission beyond the float32 range.
+        InputError: wrong shapes, non-finite inputs, or an emission peak outside EMISSION_RANGE.
     """
     _check_fit_inputs(captures, emission, points, lights, pixel_index, height, width)
     points, lights = points.float(), lights.float()
     captures, emission = captures.detach().float(), emission.detach().float()
-    if not bool(torch.isfinite(emission).all()):
-        raise InputError("emission exceeds the float32 range the inverse renderer works in")
+    peak = float(emission.amax())
+    if not EMISSION_RANGE[0] <= peak <= EMISSION_RANGE[1]:
+        raise InputError(f"emission peak {peak:.3g} lies outside [{EMISSION_RANGE[0]:g}, {EMISSION_RANGE[1]:g}], where "
+                         "the inverse renderer's float32 albedos stay representable; rescale the emission")
     if warm_start is not None:
         if warm_start.num_basis != config.num_basis or warm_start.specular_enabled != config.specular:
             raise InputError("warm_start must have the same J and specular setting as the config")
@@ -1098,23 +1102,23 @@ def fit_inverse_render(
     return scale_albedos(result, unit)
 
 
-ALBEDO_BAND = 2.0**10
-"""Albedos whose typical value lies within a factor of this of one are fitted as given."""
+EMISSION_RANGE = (1e-30, 1e30)
+"""Emission peaks the inverse renderer accepts (albedos scale inversely and must fit float32)."""
+TYPICAL_ALBEDO = 0.5
+"""The fit runs in albedo units where the 90th percentile albedo is near this."""
 
 
 def albedo_unit(albedo: torch.Tensor) -> float:
-    """A power of two that brings albedos (any shape) to order one: 1 when their 90th percentile
-    lies in [1 / ALBEDO_BAND, ALBEDO_BAND] (physical units: unchanged), else its nearest power of
-    two. Albedo is relative to the emission, so emission in other units (a raw exposure, another
-    radiometric unit) shifts it by the same factor."""
+    """The power of two u that brings the 90th percentile of albedos (any shape) nearest to
+    TYPICAL_ALBEDO: the fit runs on albedo / u and emission * u. Albedo is relative to the
+    emission, so emission in other units (a raw exposure, another radiometric unit) shifts it by
+    the same factor; in units of u the fit's settings in albedo units (``initial_specular``, the
+    floors) mean the same for every scene. 1 for physical albedos of a typical bright object."""
     values = albedo.detach().double().flatten()
     values = values[torch.isfinite(values) & (values > 0)]
     if values.numel() == 0:
         return 1.0
-    typical = float(values.quantile(0.9))
-    if 1.0 / ALBEDO_BAND <= typical <= ALBEDO_BAND:
-        return 1.0
-    return 2.0 ** round(math.log2(typical))
+    return 2.0 ** round(math.log2(float(values.quantile(0.9)) / TYPICAL_ALBEDO))
 
 
 def scale_albedos(result: "InverseRenderResult", factor: float) -> "InverseRenderResult":

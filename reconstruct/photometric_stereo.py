@@ -93,8 +93,9 @@ class PSConfig:
     the Lambertian model leaves more than 1% of the capture energy unexplained (specular light,
     heavy noise, or a wrong shadow mask)."""
     grazing_cos: float = 0.1
-    """Normals estimated within arccos(0.1) = 84 deg or more of the view direction (0 < n . v < this)
-    are flagged grazing: few superpixels light them and their shading barely changes with the normal."""
+    """Valid normals estimated more than arccos(grazing_cos) (84 deg) from the view direction
+    (n . v < this) are flagged grazing: few superpixels light them and their shading barely
+    changes with the normal."""
 
     def __post_init__(self):
         check_flag_thresholds(self)
@@ -137,15 +138,16 @@ class PSResult:
             flags say that the estimate is degraded, not meaningless.
         condition: (...) normal condition number (``pixel_solve.normal_condition``), in
             [1, CONDITION_CAP].
-        residual: (...) RMS residual of the Lambertian fit relative to the RMS capture, in [0, 1]
-            (``pixel_solve.relative_residual``; detached): a per-pixel confidence, also reported
-            for invalid pixels (1 outside the mask of image solves).
+        residual: (...) RMS residual of the Lambertian fit relative to the RMS capture, in [0, 1],
+            over the equations used (saturated captures are left out; 1 where none is left or no
+            light was captured, and outside the mask of image solves) (``pixel_solve.
+            relative_residual``; detached): a per-pixel confidence, also for invalid pixels.
         flags: dict of (...) bool masks named in FLAG_NAMES: dark, saturated, ill_conditioned,
             back_facing, bad_geometry (point behind the camera or on a superpixel), not_converged
             (shadow search stopped by its caps or away from a self-consistent mask), poor_fit
-            (residual above the config's ``residual_threshold``), grazing (estimated n . v below
-            the config's ``grazing_cos``). Like saturated and not_converged, poor_fit and grazing
-            pixels stay valid.
+            (a valid pixel whose residual exceeds the config's ``residual_threshold``), grazing (a
+            valid pixel whose estimated n . v is below the config's ``grazing_cos``). Like
+            saturated and not_converged, poor_fit and grazing pixels stay valid.
     """
 
     normal: torch.Tensor
@@ -200,9 +202,10 @@ def finalise(normal, albedo, condition, residual, flags: dict, field_: LightFiel
     flags["ill_conditioned"] = condition > config.condition_threshold
     flags["back_facing"] = facing <= 0
     flags["bad_geometry"] = field_.bad
-    flags["poor_fit"] = residual > config.residual_threshold
-    flags["grazing"] = (facing > 0) & (facing < config.grazing_cos)
     valid = ~(flags["dark"] | flags["ill_conditioned"] | flags["back_facing"] | flags["bad_geometry"])
+    # Marks on estimates that are kept: an invalid pixel's normal is replaced below anyway.
+    flags["poor_fit"] = valid & (residual > config.residual_threshold)
+    flags["grazing"] = valid & (facing < config.grazing_cos)
     default_normal = torch.tensor([0.0, 0.0, -1.0], dtype=normal.dtype)
     normal = torch.where(valid[:, None], normal, default_normal)
     albedo = torch.where(valid[:, None], albedo, torch.zeros((), dtype=albedo.dtype))
@@ -362,7 +365,7 @@ def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSC
             unshadowed N x K weights are kept once), results do not depend on it.
 
     Returns:
-        PSResult with (N, 3) normals and albedo, (N,) valid, condition and flags. Differentiable
+        PSResult with (N, 3) normals and albedo, (N,) valid, condition, residual and flags. Differentiable
         w.r.t. ``captures`` and ``emission`` (exact implicit gradients of the converged solution);
         no gradient flows to points or lights.
 
@@ -450,7 +453,7 @@ def solve_ps_image(
         chunk_size: pixels per block of (pixels x lights) work.
 
     Returns:
-        PSResult with (H, W, 3) normals and albedo and (H, W) valid, condition and flags; pixels
+        PSResult with (H, W, 3) normals and albedo and (H, W) valid, condition, residual and flags; pixels
         outside the mask are invalid with normal (0, 0, -1) and albedo 0. Differentiable w.r.t.
         ``captures`` and ``emission``.
     """

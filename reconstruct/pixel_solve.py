@@ -254,7 +254,7 @@ def relative_residual(normal: torch.Tensor, moments: Moments) -> torch.Tensor:
     masks.
 
     Undamped, unlike the solver's objective (``residual``), whose damping adds a floor of order
-    sqrt(damping); the cancellation left costs sqrt(eps) of the dtype (3e-4 in float32). A
+    sqrt(damping); the cancellation left costs a few sqrt(eps) of the dtype (~1e-3 in float32). A
     confidence measure: specular highlights, noise and wrong shadow masks all raise it.
     """
     normal = normal.detach()

@@ -79,7 +79,7 @@ class WoodhamConfig:
     residual_threshold: float = 0.1
     """Pixels whose relative fit residual exceeds this are flagged poor_fit (as ``PSConfig``)."""
     grazing_cos: float = 0.1
-    """Valid normals with 0 < n . v below this are flagged grazing (as ``PSConfig``)."""
+    """Valid normals with n . v below this are flagged grazing (as ``PSConfig``)."""
 
     def __post_init__(self):
         check_flag_thresholds(self)
@@ -260,8 +260,8 @@ def solve_woodham(captures, emission, points, lights, falloff, config: WoodhamCo
         chunk_size: pixels per block of (pixels x lights) work.
 
     Returns:
-        PSResult (no gradients) with (N, 3) normals and albedo (rho / pi), (N,) valid, condition
-        and flags, as ``solve_ps``.
+        PSResult (no gradients) with (N, 3) normals and albedo (rho / pi), (N,) valid, condition,
+        residual and flags, as ``solve_ps``.
 
     Raises:
         InputError: wrong shapes, non-finite inputs, negative emission (captures may be slightly
@@ -322,7 +322,7 @@ def solve_woodham_image(
         chunk_size: pixels per block of (pixels x lights) work.
 
     Returns:
-        PSResult with (H, W, 3) normals and albedo and (H, W) valid, condition and flags; pixels
+        PSResult with (H, W, 3) normals and albedo and (H, W) valid, condition, residual and flags; pixels
         outside the mask are invalid with normal (0, 0, -1) and albedo 0.
     """
     check_image_inputs(captures, points, mask)

@@ -219,8 +219,9 @@ def test_residual_is_the_relative_misfit_of_the_fitted_model(sphere):
     expected = (disturbed - rendered).square().sum((0, 2)).sqrt() / disturbed.square().sum((0, 2)).sqrt()
     assert result.valid.float().mean() > 0.9
     torch.testing.assert_close(result.residual[result.valid], expected[result.valid], rtol=1e-4, atol=1e-6)
-    assert (result.flags["poor_fit"] == (result.residual > PSConfig().residual_threshold)).all()
-    assert (result.flags["poor_fit"] & result.valid).float().mean() > 0.2, "poor_fit does not invalidate"
+    assert (result.flags["poor_fit"] == (result.valid & (result.residual > PSConfig().residual_threshold))).all()
+    assert result.flags["poor_fit"].float().mean() > 0.2, "poor_fit does not invalidate"
+    assert (result.residual[~result.valid] > PSConfig().residual_threshold).any(), "invalid pixels keep their residual"
 
 
 @pytest.mark.parametrize("key", ["residual_threshold", "grazing_cos"])

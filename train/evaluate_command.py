@@ -71,7 +71,8 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
             warnings.warn(f"every pixel of {evaluation.metrics['name']} is flagged invalid (too few, identical, dark or "
                           "saturated captures): its MAE says nothing about the patterns", DisplexWarning, stacklevel=2)
         if config.out is not None:
-            panels.append(_write_scene_outputs(Path(config.out), Path(scene.meta.get("file", scene.name)).stem, pixels, evaluation))
+            panels.append(_write_scene_outputs(Path(config.out), Path(scene.meta.get("file", scene.name)).stem, pixels, evaluation,
+                                              settings.ps.residual_threshold))
     document = {
         "patterns": str(config.patterns),
         "method": config.method,
@@ -88,7 +89,11 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
     return document
 
 
-def _write_scene_outputs(out: Path, stem: str, pixels, evaluation) -> tuple:
+ERROR_MAP_MAX_DEG = 45.0
+"""Error maps saturate here (degrees), in the per-scene figures and the summary."""
+
+
+def _write_scene_outputs(out: Path, stem: str, pixels, evaluation, residual_threshold: float) -> tuple:
     normal = pixels.transport.to_image(evaluation.result.normal[None].float(), fill=0.0)[0].numpy()
     normal[~pixels.mask] = (0.0, 0.0, -1.0)
     truth = pixels.transport.to_image(pixels.normal[None], fill=0.0)[0].numpy()
@@ -101,7 +106,8 @@ def _write_scene_outputs(out: Path, stem: str, pixels, evaluation) -> tuple:
     errors = error_map(pixels, evaluation.result)
     fig = image_grid(
         [normal_to_rgb(normal), normal_to_rgb(truth), errors, residual],
-        ["estimated normals", "ground truth", f"angular error (MAE {evaluation.metrics['mae']:.2f} deg)", "relative fit residual"],
+        ["estimated normals", "ground truth", f"angular error, MAE {evaluation.metrics['mae']:.2f} deg (0 to {ERROR_MAP_MAX_DEG:g}+)",
+         f"relative fit residual (0 to {residual_threshold:g}+)"],
         f"{pixels.name}",
         "Normals shown as RGB = ((x, -y, -z) + 1) / 2 in the camera frame; error in degrees inside the mask. "
         "Residual: RMS misfit of the Lambertian model over the RMS capture, a confidence the solver computes without "
@@ -109,6 +115,7 @@ def _write_scene_outputs(out: Path, stem: str, pixels, evaluation) -> tuple:
         columns=4,
         cmap="magma",
         colorbar_label=None,
+        limits=[None, None, (0.0, ERROR_MAP_MAX_DEG), (0.0, residual_threshold)],
     )
     save_figure(fig, out / f"{stem}_normals.png")
     return pixels.name, normal_to_rgb(normal), errors, evaluation.metrics["mae"]
@@ -117,14 +124,14 @@ def _write_scene_outputs(out: Path, stem: str, pixels, evaluation) -> tuple:
 def _summary_figure(path: Path, panels: list, document: dict) -> None:
     images, titles = [], []
     for name, normal_rgb, errors, mae in panels:
-        images += [normal_rgb, np.nan_to_num(errors) / 45.0]
-        titles += [f"{name}: normals", f"error, MAE {mae:.2f} deg (black 0, white 45+)"]
+        images += [normal_rgb, np.nan_to_num(errors) / ERROR_MAP_MAX_DEG]
+        titles += [f"{name}: normals", f"error, MAE {mae:.2f} deg (black 0, white {ERROR_MAP_MAX_DEG:g}+)"]
     fig = image_grid(
         [np.clip(image, 0, 1) if image.ndim == 2 else image for image in images],
         titles,
         f"{document['method']} with {Path(document['patterns']).name}: mean MAE {document['mean_mae']:.2f} deg",
         f"Noise {document['noise']}, rig {document['rig']}, auto exposure per scene unless fixed. "
-        "Error maps: angle between estimated and true normals, scaled so white = 45 degrees or more.",
+        f"Error maps: angle between estimated and true normals, scaled so white = {ERROR_MAP_MAX_DEG:g} degrees or more.",
         columns=4,
         cmap="gray",
     )

@@ -31,16 +31,19 @@ def save_figure(fig, path) -> None:
     plt.close(fig)
 
 
-def image_grid(images: list[np.ndarray], titles: list[str], suptitle: str, caption: str, columns: int = 4, cmap=None, colorbar_label=None):
-    """A figure with one panel per image (H, W, 3) or (H, W), titled, with a caption line below."""
+def image_grid(images: list[np.ndarray], titles: list[str], suptitle: str, caption: str, columns: int = 4, cmap=None, colorbar_label=None,
+               limits: list | None = None):
+    """A figure with one panel per image (H, W, 3) or (H, W), titled, with a caption line below.
+    ``limits`` optionally gives each (H, W) image a fixed colour range (vmin, vmax) or None (its own)."""
     count = len(images)
     columns = max(1, min(columns, count))
     rows = int(np.ceil(count / columns))
     fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 2.9 * rows + 0.6), squeeze=False)
     for ax in axes.ravel():
         ax.set_axis_off()
-    for ax, image, title in zip(axes.ravel(), images, titles):
-        shown = ax.imshow(image, cmap=cmap, interpolation="nearest")
+    for ax, image, title, limit in zip(axes.ravel(), images, titles, limits or [None] * count):
+        vmin, vmax = limit if limit is not None else (None, None)
+        shown = ax.imshow(image, cmap=cmap, interpolation="nearest", vmin=vmin, vmax=vmax)
         ax.set_title(title, fontsize=9)
         if colorbar_label is not None:
             fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.04, label=colorbar_label)
