@@ -677,7 +677,8 @@ def initial_estimate(captures, emission, points, lights, falloff, ps_config: PSC
         raise InputError("initial_estimate needs at least one pattern")
     # Solve with an emission peak near one (a power of two: exact), so that float32 moments
     # neither under- nor overflow whatever its units; the albedo scales back exactly.
-    peak = 2.0 ** math.frexp(float(emission.detach().amax()))[1] if bool((emission > 0).any()) else 1.0
+    maximum = float(emission.detach().amax())
+    peak = 2.0 ** math.frexp(maximum)[1] if maximum > 0 else 1.0
     emission = (emission.double() / peak).to(emission.dtype)
     with torch.no_grad():
         plan = EmissionPlan(emission.detach())
@@ -1085,19 +1086,18 @@ def fit_inverse_render(
         if warm_start.normal.shape[0] != captures.shape[1]:
             raise InputError("warm_start has a different number of pixels than the captures")
         unit = albedo_unit(torch.cat([warm_start.diffuse.flatten(), warm_start.specular.flatten()]))
-        start = time.perf_counter()
-        model = BasisModel.from_result(scale_albedos(warm_start, 1.0 / unit), config)
     else:
         if initial is None:
             initial = initial_estimate(captures, emission, points, lights, falloff, pixel_index=pixel_index, height=height, width=width)
         unit = albedo_unit(initial.albedo[initial.valid].amax(-1) if bool(initial.valid.any()) else initial.albedo.amax(-1))
-        initial = dataclasses.replace(initial, albedo=initial.albedo / unit)
     # Fit in albedo units near one (the settings and floors are in such units), whatever the
     # emission's units; images are unchanged, the albedos are scaled back below.
     emission = emission * unit
-    if warm_start is None:
-        start = time.perf_counter()
-        model = _initial_model(captures, emission, points, lights, falloff, initial, config)
+    start = time.perf_counter()
+    if warm_start is not None:
+        model = BasisModel.from_result(scale_albedos(warm_start, 1.0 / unit), config)
+    else:
+        model = _initial_model(captures, emission, points, lights, falloff, dataclasses.replace(initial, albedo=initial.albedo / unit), config)
     result = _optimise(model, captures, emission, points, lights, falloff, pixel_index, height, width, config, log, start)
     return scale_albedos(result, unit)
 

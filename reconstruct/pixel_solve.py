@@ -226,10 +226,14 @@ def normal_step(albedo: torch.Tensor, moments: Moments, damping: float) -> torch
     return damped_direction(system, rhs, damping)
 
 
+def _fit_terms(normal: torch.Tensor, moments: Moments) -> tuple[torch.Tensor, torch.Tensor]:
+    """(3, N) n . r_c and n^T B_c n: the per-channel least-squares albedo is their ratio."""
+    return (normal[None] * moments.projection).sum(1), quadratic_form(moments.moment, normal, normal)
+
+
 def _albedo_terms(normal: torch.Tensor, moments: Moments, damping: float) -> tuple[torch.Tensor, torch.Tensor]:
-    numerator = (normal[None] * moments.projection).sum(1)
-    energy = quadratic_form(moments.moment, normal, normal)
-    return numerator, energy + damping * symmetric_trace(moments.moment) / 3 + ABSOLUTE_DAMPING
+    numerator, shading = _fit_terms(normal, moments)
+    return numerator, shading + damping * symmetric_trace(moments.moment) / 3 + ABSOLUTE_DAMPING
 
 
 def albedo_step(normal: torch.Tensor, moments: Moments, damping: float) -> torch.Tensor:
@@ -259,8 +263,7 @@ def relative_residual(normal: torch.Tensor, moments: Moments) -> torch.Tensor:
     """
     normal = normal.detach()
     tiny = torch.finfo(normal.dtype).tiny
-    projection = (normal[None] * moments.projection.detach()).sum(1)  # (3, N): n . r_c
-    shading = quadratic_form(moments.moment.detach(), normal, normal)  # (3, N): n^T B_c n
+    projection, shading = _fit_terms(normal, moments.detach())
     explained = torch.where(shading > tiny, torch.relu(projection).square() / shading.clamp_min(tiny), torch.zeros_like(shading))
     energy = moments.capture_energy.detach().sum(0)
     unexplained = (energy - explained.sum(0)).clamp_min(0)
