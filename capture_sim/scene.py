@@ -5,6 +5,7 @@ every command fails with one clear message on a bad file.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import warnings
 from dataclasses import dataclass, field
@@ -63,6 +64,17 @@ class Scene:
     @property
     def num_lights(self) -> int:
         return self.olat.shape[0]
+
+    def without_specular(self) -> "Scene":
+        """The same object as if it reflected diffusely only: ``olat`` replaced by the ``diffuse``
+        stack (K, H, W, 3), no specular stack; geometry, mask and meta unchanged.
+
+        Raises:
+            InputError: the scene has no separate diffuse stack, or its diffuse stack is all zero.
+        """
+        if self.diffuse is None:
+            raise InputError(f"scene {self.name} has no separate diffuse stack")
+        return dataclasses.replace(self, olat=self.diffuse, specular=None)
 
     def points(self, working_distance: float, dtype=torch.float32) -> torch.Tensor:
         """(H, W, 3) surface points in metres: from the depth map, else a plane at ``working_distance``."""

@@ -153,6 +153,19 @@ def test_summary_tables_against_plain_computation():
     spread = {s["noise_scale"]: s for s in summary["seed_spread"]}
     assert spread[0.5]["seeds"] == [0, 1] and spread[0.5]["min"] == 8.0 and spread[0.5]["max"] == 9.0
     assert spread[2.0]["std"] == pytest.approx(np.std([17.0, 19.0]))
+    assert summary["specular_free"] == {"rows": [], "learned_vs_heuristic": []}
+
+
+def test_specular_free_summary_against_plain_computation():
+    results = fake_results()
+    for method, mae in zip(results["methods"], (4.0, 3.0, 6.0, 3.5, 4.5, 5.0)):
+        method["specular_free"] = dict(method["evaluations"][0], mae=mae)  # measured at the default noise (0.5)
+    free = summary_tables(results)["specular_free"]
+    rows = {row["series"]: row for row in free["rows"]}
+    assert rows["learned"]["mae"] == pytest.approx(4.0) and rows["b"]["mae"] == 3.0
+    (comparison,) = free["learned_vs_heuristic"]
+    assert comparison["noise_scale"] == 0.5 and comparison["best_heuristic"] == "b" and comparison["ratio"] == pytest.approx(4.0 / 3.0)
+    assert aggregate_rows(results, 2.0, specular_free=True) == []  # only measured at the default noise
 
 
 def test_run_compare_end_to_end_and_resume(scenes, tmp_path):
@@ -181,6 +194,15 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path):
         assert text in report
     for file_name in CHARTS.values():
         assert (tmp_path / file_name).stat().st_size > 0 and f"({file_name})" in report
+
+    assert results["specular_free"] == {"enabled": True}
+    for method in results["methods"]:
+        free = method["specular_free"]
+        assert len(free["scenes"]) == 4 and np.isfinite(free["mae"])
+    reference = next(m for m in results["methods"] if m["kind"] == "reference")
+    # Woodham on the full OLAT stack fails on glossy pixels only: removing the specular stacks must help it.
+    assert reference["specular_free"]["mae"] < reference["evaluations"][0]["mae"]
+    assert "Where the error comes from" in report and "specular-free MAE" in report
 
     again = run_compare(config, tmp_path, progress=False)
     assert again["timings"]["learning_seconds"] < 1.0
@@ -233,3 +255,40 @@ def test_parallel_subset_evaluation_matches_in_process_and_deduplicates(scenes, 
         for first, second in zip(one.evaluations, other.evaluations):
             assert [s["mae"] for s in first["scenes"]] == [s["mae"] for s in second["scenes"]]
     assert serial[2].evaluations[0]["mae"] < serial[0].evaluations[0]["mae"]
+
+
+def test_specular_free_evaluation_is_the_evaluation_of_the_diffuse_scenes(scenes, tmp_path):
+    """``evaluate_specular_free`` measures each method on ``Scene.without_specular`` copies, at the
+    default noise, with the comparison's pixels and noise draws; a scene without a diffuse stack
+    skips the check with its reason."""
+    from capture_sim.scene import load_scene, scene_paths
+    from train.compare import evaluate_specular_free, evaluation_columns, specular_free_scenes
+    from train.evaluate import EvalSettings, evaluate_scene
+
+    rig = load_rig()
+    raw = [load_scene(path) for path in scene_paths([scenes / "test"])]
+    free_scenes, reason = specular_free_scenes(raw, rig)
+    assert reason is None and len(free_scenes) == len(raw)
+    assert np.array_equal(raw[0].without_specular().olat, raw[0].diffuse) and raw[0].without_specular().specular is None
+    config = tiny_config(scenes, eval_pixels_per_scene=40, solver={"max_shadow_iterations": 4})
+    patterns = np.load(REPO / "patterns" / "data" / "ddps" / "initial_tri_complementary.npy").astype(np.float32)
+    methods = [Method("a", "heuristic", "a", "a", 2, patterns)]
+    evaluate_specular_free(methods, free_scenes, config, 440.0, progress=False)
+    columns = evaluation_columns(free_scenes, 40, config.eval_seed)
+    settings = EvalSettings(noise_scale=config.default_noise, seed=config.eval_seed, ps=config.ps_config())
+    direct = [evaluate_scene(pixels, torch.as_tensor(patterns), settings, index, subset).metrics["mae"]
+              for index, (pixels, subset) in enumerate(zip(free_scenes, columns))]
+    assert [scene["mae"] for scene in methods[0].specular_free["scenes"]] == direct
+
+    missing = dataclasses.replace(raw[1], diffuse=None)
+    assert specular_free_scenes([raw[0], missing], rig) == (None, f"scene {missing.name} has no separate diffuse stack")
+
+
+def test_specular_free_section_states_a_skipped_or_disabled_check():
+    from train.report import specular_free_section
+
+    results = fake_results()
+    summary = summary_tables(results)
+    assert specular_free_section(dict(results, specular_free={"enabled": False}), summary, summary["rows"]) == []
+    lines = specular_free_section(dict(results, specular_free={"enabled": True, "skipped": "scene x has no separate diffuse stack"}), summary, summary["rows"])
+    assert "Skipped: scene x has no separate diffuse stack." in lines

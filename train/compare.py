@@ -7,6 +7,8 @@ analytic photometric stereo (``train.evaluate.evaluate_scene``, auto exposure):
 - NLopt searches of a family's parameters (``train.search.run_search``, at the default noise);
 - external pattern files (e.g. the published DDPS patterns);
 - the reference: the full OLAT stack (M = K) reconstructed with Woodham least squares.
+Every method is also measured at the default noise on the test scenes without their specular
+stacks (``specular_free_check``): the difference is the reconstructor's error on glossy pixels.
 Learning and search use the training scenes only; every number in the report comes from the
 test scenes. Outputs: ``results.json`` (every number and the resolved config), ``report.md`` and
 charts (``train.report``), and the learned / searched / heuristic pattern files in ``patterns/``.
@@ -35,8 +37,9 @@ from train.config_io import config_from_dict, config_to_dict
 from train.evaluate import EvalSettings, evaluate_scene
 from reconstruct.photometric_stereo import PSConfig
 from train.learn import TrainConfig, train_patterns
-from train.search import SearchConfig, prepare_scenes, run_search
-from train.scene_pixels import fixed_pixel_subsets
+from train.search import SearchConfig, run_search
+from train.scene_pixels import fixed_pixel_subsets, scene_pixels
+from train.scene_sets import resolve_scenes
 
 DEFAULT_EXPOSURE_MS = 440.0
 """Exposure time per image (ms) when the rig's TOML gives no ``camera.exposure_ms``."""
@@ -112,6 +115,11 @@ class CompareConfig:
     """Pattern files to compare ([[external]] tables: name, path)."""
     include_olat_woodham: bool = True
     """Evaluate the reference: the full OLAT stack (M = K) with Woodham least squares."""
+    specular_free_check: bool = True
+    """Also evaluate every method at the default noise on the test scenes with their specular
+    stacks removed (``Scene.without_specular``), which separates the error of the patterns from
+    the error a Lambertian reconstructor makes on glossy pixels. Skipped, with the reason in the
+    report, when a test scene has no separate diffuse stack."""
     rerender_counts: tuple[int, ...] = ()
     """M values with one more learning run (first seed) that adds the re-rendering loss
     (TrainConfig.rerender_weight = ``rerender_weight``), compared with the normal-only run."""
@@ -363,6 +371,7 @@ class Method:
         seed: learning seed (learned methods only).
         info: extra facts for the report (e.g. a search's start and best training MAE).
         evaluations: one summary per noise level (``summarise`` plus ``noise_scale``).
+        specular_free: the summary at the default noise on the specular-free test scenes, or None.
     """
 
     id: str
@@ -376,6 +385,7 @@ class Method:
     seed: int | None = None
     info: dict = field(default_factory=dict)
     evaluations: list = field(default_factory=list)
+    specular_free: dict | None = None
 
 
 def _reusable(path: Path, resolved: dict, what: str) -> dict | None:
@@ -556,20 +566,24 @@ def _evaluate_job(patterns, reference: bool, noise: float) -> list[dict]:
             for index, (pixels, subset) in enumerate(zip(state["scenes"], state["columns"]))]
 
 
-def evaluate_methods(methods: list[Method], scenes, config: CompareConfig, exposure_ms: float, progress: bool) -> None:
-    """Fill every method's ``evaluations`` with one summary per noise level (test scenes).
+def measure_methods(methods: list[Method], scenes, config: CompareConfig, noise_scales, progress: bool, what: str = "evaluating") -> tuple[list[int], dict]:
+    """Per-scene metrics of every distinct pattern set at every noise level on ``scenes``.
 
-    Scenes are prepared once by the caller; every method is measured on the same pixels
-    (``config.eval_pixels_per_scene``) with the same noise draws, and a pattern set that occurs
-    twice (e.g. an external file equal to a heuristic family) is evaluated once. With
-    ``config.eval_workers`` > 1 the (pattern set, noise level) jobs run in forked processes.
+    Every method is measured on the same pixels (``config.eval_pixels_per_scene``) with the same
+    noise draws, and a pattern set that occurs twice (e.g. an external file equal to a heuristic
+    family) is measured once. With ``config.eval_workers`` > 1 the (pattern set, noise level) jobs
+    run in forked processes.
+
+    Returns:
+        ``first_with_same_patterns(methods)`` and {(index of that first method, noise): [metrics
+        per scene]}.
     """
     _WORKER_STATE.update(scenes=scenes, columns=evaluation_columns(scenes, config.eval_pixels_per_scene, config.eval_seed),
                          ps=config.ps_config(), seed=config.eval_seed)
     representative = first_with_same_patterns(methods)
-    jobs = [(key, methods[key], float(noise)) for key in sorted(set(representative)) for noise in config.noise_scales]
+    jobs = [(key, methods[key], float(noise)) for key in sorted(set(representative)) for noise in noise_scales]
     metrics: dict = {}
-    bar = tqdm(total=len(jobs), desc="evaluating", unit="set", disable=not progress)
+    bar = tqdm(total=len(jobs), desc=what, unit="set", disable=not progress)
     try:
         if config.eval_workers > 1 and len(jobs) > 1:
             import multiprocessing
@@ -588,11 +602,34 @@ def evaluate_methods(methods: list[Method], scenes, config: CompareConfig, expos
     finally:
         bar.close()
         _WORKER_STATE.clear()
+    return representative, metrics
+
+
+def evaluate_methods(methods: list[Method], scenes, config: CompareConfig, exposure_ms: float, progress: bool) -> None:
+    """Fill every method's ``evaluations`` with one summary per noise level (test scenes prepared
+    once by the caller; see ``measure_methods``)."""
+    representative, metrics = measure_methods(methods, scenes, config, config.noise_scales, progress)
     for method, key in zip(methods, representative):
         if methods[key] is not method:
             method.info["same_patterns_as"] = methods[key].id
         method.evaluations = [{"noise_scale": float(noise), **summarise(metrics[(key, float(noise))], method.num_patterns, exposure_ms)}
                               for noise in config.noise_scales]
+
+
+def specular_free_scenes(scenes: list, rig) -> tuple[list | None, str | None]:
+    """The prepared test scenes without their specular stacks, or (None, the reason) when one of
+    them cannot be made so (``Scene.without_specular``)."""
+    try:
+        return [scene_pixels(scene.without_specular(), rig, require_normals=True) for scene in scenes], None
+    except InputError as error:
+        return None, str(error)
+
+
+def evaluate_specular_free(methods: list[Method], scenes, config: CompareConfig, exposure_ms: float, progress: bool) -> None:
+    """Fill every method's ``specular_free`` summary: the default noise on specular-free scenes."""
+    representative, metrics = measure_methods(methods, scenes, config, (config.default_noise,), progress, "specular-free check")
+    for method, key in zip(methods, representative):
+        method.specular_free = summarise(metrics[(key, float(config.default_noise))], method.num_patterns, exposure_ms)
 
 
 def method_record(method: Method, out_dir: Path) -> dict:
@@ -606,7 +643,7 @@ def method_record(method: Method, out_dir: Path) -> dict:
     info = dict(method.info)
     return {"id": method.id, "kind": method.kind, "series": method.series, "label": method.label, "M": method.num_patterns,
             "seed": method.seed, "pattern_file": pattern_file, "cost_seconds": method.cost_seconds, "info": info,
-            "evaluations": method.evaluations}
+            "evaluations": method.evaluations, "specular_free": method.specular_free}
 
 
 def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> dict:
@@ -630,7 +667,10 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     exposure_ms, exposure_source = rig_exposure_ms(config.rig)
     resolved = compare_config_to_dict(config)
     write_json(out_dir / "config.json", resolved)
-    test_scenes = prepare_scenes(config.test_scenes, "test", rig, config.scene_size, config.scene_seed)
+    test_raw = resolve_scenes(tuple(config.test_scenes), "test", rig, tuple(config.scene_size), config.scene_seed)
+    if not test_raw:
+        raise InputError("no test scenes to compare on")
+    test_scenes = [scene_pixels(scene, rig, require_normals=True) for scene in test_raw]
     methods, skipped, timings = collect_methods(config, rig, out_dir / "patterns", progress, logdir=out_dir / "tensorboard")
     if not methods:
         # CompareConfig refuses configs that list nothing, so every listed method was skipped.
@@ -639,6 +679,15 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     start = time.perf_counter()
     evaluate_methods(methods, test_scenes, config, exposure_ms, progress)
     timings["evaluation_seconds"] = time.perf_counter() - start
+    specular_free = {"enabled": config.specular_free_check}
+    if config.specular_free_check:
+        free_scenes, reason = specular_free_scenes(test_raw, rig)
+        if free_scenes is None:
+            specular_free["skipped"] = reason
+        else:
+            start = time.perf_counter()
+            evaluate_specular_free(methods, free_scenes, config, exposure_ms, progress)
+            timings["specular_free_seconds"] = time.perf_counter() - start
     results = {
         "config": resolved,
         "rig": rig.name,
@@ -651,6 +700,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
         "test_scenes": [pixels.name for pixels in test_scenes],
         "test_pixels": sum(pixels.num_pixels for pixels in test_scenes),
         "methods": [method_record(method, out_dir) for method in methods],
+        "specular_free": specular_free,
         "skipped": skipped,
         "timings": timings,
     }
