@@ -23,6 +23,7 @@ CHARTS = {
     "mae_vs_compute_time": "mae_vs_compute_time.png",
     "mae_vs_noise": "mae_vs_noise.png",
     "patterns": "patterns.png",
+    "specular_free": "mae_specular_free.png",
 }
 """Chart name -> file name in the output folder."""
 
@@ -265,6 +266,42 @@ def chart_mae_vs_noise(results: dict, caption: str):
     return fig
 
 
+def chart_specular_free(rows: list[dict], free_rows: list[dict], caption: str):
+    """MAE (deg) on the test scenes against MAE without their specular stacks, one point per method
+    and M (log axes); the distance above the diagonal is the error due to specular reflection."""
+    free = {(row["series"], row["M"]): row["mae"] for row in free_rows}
+    fig, ax = plt.subplots(figsize=(9.0, 5.2))
+    for (kind, label, series), values in _series(rows).items():
+        points = [(free[(row["series"], row["M"])], row["mae"], row["M"]) for row in values if (row["series"], row["M"]) in free]
+        if not points:
+            continue
+        style = _style(kind, series)
+        style.pop("linewidth", None)
+        style.pop("linestyle", None)
+        ax.plot([p[0] for p in points], [p[1] for p in points], linestyle="none", markersize=7 if kind != "heuristic" else 9, label=label, **style)
+        if kind != "heuristic":
+            for x, y, count in points:
+                ax.annotate(f"M={count}", (x, y), textcoords="offset points", xytext=(4, 3), fontsize=6)
+    low = max(min([*free.values(), *(row["mae"] for row in rows)], default=0.1), 1e-2)
+    high = max([*free.values(), *(row["mae"] for row in rows)], default=1.0)
+    ax.plot([low, high], [low, high], color="grey", linewidth=1, linestyle=":", label="no specular error (y = x)")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_ylim(bottom=max(min((row["mae"] for row in rows), default=low), 1e-2) / 1.5)  # the diagonal may leave the plot below
+    plain = matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}")
+    ax.xaxis.set_major_formatter(plain)
+    ax.yaxis.set_major_formatter(plain)
+    ax.yaxis.set_minor_formatter(plain)  # the y range may span less than a decade
+    ax.set_xlabel("mean angular error without specular reflection (deg)")
+    ax.set_ylabel("mean angular error on the test scenes (deg)")
+    ax.set_title("How much of each method's error is specular reflection")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    _caption(fig, caption)
+    fig.tight_layout()
+    return fig
+
+
 def pattern_strip(patterns: np.ndarray, gap: int = 1) -> np.ndarray:
     """(R, M * (C + gap) - gap, 3) image of M patterns side by side, white gaps between them."""
     count, rows, cols, _ = patterns.shape
@@ -417,6 +454,10 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
                                   "Speed-accuracy: normal error against reconstruction time", short), out_dir / CHARTS["mae_vs_compute_time"])
     save_figure(chart_mae_vs_noise(results, f"{len(results['test_scenes'])} test scenes; analytic PS (OLAT: Woodham); noise scale multiplies the rig's noise variances."),
                 out_dir / CHARTS["mae_vs_noise"])
+    free_rows = (summary.get("specular_free") or {}).get("rows")
+    if free_rows:
+        save_figure(chart_specular_free(rows, free_rows, f"{short} x: the same scenes, pixels and noise without the specular stacks."),
+                    out_dir / CHARTS["specular_free"])
     entries = pattern_entries(results, rows, pattern_sets)
     if entries:
         save_figure(chart_patterns(entries, "Each row: one pattern set, patterns left to right; superpixel grid as on the panel."), out_dir / CHARTS["patterns"])
@@ -520,7 +561,8 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
     timings = results["timings"]
     lines += ["## Charts", ""]
     chart_titles = {"mae_vs_M": "MAE against M", "mae_vs_capture_time": "MAE against capture time", "mae_vs_compute_time": "Speed-accuracy (compute time)",
-                    "mae_vs_noise": "MAE against noise level", "patterns": "The pattern sets"}
+                    "mae_vs_noise": "MAE against noise level", "patterns": "The pattern sets",
+                    "specular_free": "Error with and without specular reflection"}
     for name, file_name in CHARTS.items():
         if (out_dir / file_name).exists():
             lines += [f"### {chart_titles[name]}", "", f"![{chart_titles[name]}]({file_name})", ""]
