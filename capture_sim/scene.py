@@ -69,12 +69,18 @@ class Scene:
         """The same object as if it reflected diffusely only: ``olat`` replaced by the ``diffuse``
         stack (K, H, W, 3), no specular stack; geometry, mask and meta unchanged.
 
+        The diffuse stack takes the OLAT stack's dtype.
+
         Raises:
-            InputError: the scene has no separate diffuse stack, or its diffuse stack is all zero.
+            InputError: the scene has no separate diffuse stack, or it is zero inside the mask
+                (a purely specular object: every pixel would be dark).
         """
         if self.diffuse is None:
             raise InputError(f"scene {self.name} has no separate diffuse stack")
-        return dataclasses.replace(self, olat=self.diffuse, specular=None)
+        diffuse = np.asarray(self.diffuse, dtype=self.olat.dtype)
+        if not float(diffuse[:, self.mask].max(initial=0.0)) > 0:
+            raise InputError(f"scene {self.name}: its diffuse stack is zero inside the mask (a purely specular object)")
+        return dataclasses.replace(self, olat=diffuse, specular=None)
 
     def points(self, working_distance: float, dtype=torch.float32) -> torch.Tensor:
         """(H, W, 3) surface points in metres: from the depth map, else a plane at ``working_distance``."""

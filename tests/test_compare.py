@@ -197,12 +197,17 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path):
 
     assert results["specular_free"] == {"enabled": True}
     for method in results["methods"]:
-        free = method["specular_free"]
-        assert len(free["scenes"]) == 4 and np.isfinite(free["mae"])
+        free, (main,) = method["specular_free"], method["evaluations"]
+        assert np.isfinite(free["mae"])
+        # Same scenes and exposures; the matte cylinder has no specular stack, so it is measured exactly as before.
+        assert [s["exposure"] for s in free["scenes"]] == [s["exposure"] for s in main["scenes"]]
+        assert [s["name"] for s in free["scenes"]] == [s["name"] for s in main["scenes"]]
+        matte = [s["name"] for s in main["scenes"]].index("test-08-cylinder-textured")
+        assert free["scenes"][matte]["mae"] == main["scenes"][matte]["mae"]
     reference = next(m for m in results["methods"] if m["kind"] == "reference")
     # Woodham on the full OLAT stack fails on glossy pixels only: removing the specular stacks must help it.
     assert reference["specular_free"]["mae"] < reference["evaluations"][0]["mae"]
-    assert "Where the error comes from" in report and "specular-free MAE" in report
+    assert "Where the error comes from" in report and "specular-free MAE" in report and "specular-free check" in report
 
     again = run_compare(config, tmp_path, progress=False)
     assert again["timings"]["learning_seconds"] < 1.0
@@ -259,11 +264,12 @@ def test_parallel_subset_evaluation_matches_in_process_and_deduplicates(scenes, 
 
 def test_specular_free_evaluation_is_the_evaluation_of_the_diffuse_scenes(scenes, tmp_path):
     """``evaluate_specular_free`` measures each method on ``Scene.without_specular`` copies, at the
-    default noise, with the comparison's pixels and noise draws; a scene without a diffuse stack
-    skips the check with its reason."""
+    default noise, with the comparison's pixels, noise draws and the main evaluation's exposures; a
+    scene without a usable diffuse stack skips the check with its reason."""
     from capture_sim.scene import load_scene, scene_paths
-    from train.compare import evaluate_specular_free, evaluation_columns, specular_free_scenes
+    from train.compare import evaluate_methods, evaluate_specular_free, evaluation_columns, specular_free_scenes
     from train.evaluate import EvalSettings, evaluate_scene
+    from train.search import prepare_scenes
 
     rig = load_rig()
     raw = [load_scene(path) for path in scene_paths([scenes / "test"])]
@@ -273,15 +279,24 @@ def test_specular_free_evaluation_is_the_evaluation_of_the_diffuse_scenes(scenes
     config = tiny_config(scenes, eval_pixels_per_scene=40, solver={"max_shadow_iterations": 4})
     patterns = np.load(REPO / "patterns" / "data" / "ddps" / "initial_tri_complementary.npy").astype(np.float32)
     methods = [Method("a", "heuristic", "a", "a", 2, patterns)]
+    evaluate_methods(methods, prepare_scenes([scenes / "test"], "test", rig, SIZE, 0), config, 440.0, progress=False)
     evaluate_specular_free(methods, free_scenes, config, 440.0, progress=False)
-    columns = evaluation_columns(free_scenes, 40, config.eval_seed)
-    settings = EvalSettings(noise_scale=config.default_noise, seed=config.eval_seed, ps=config.ps_config())
-    direct = [evaluate_scene(pixels, torch.as_tensor(patterns), settings, index, subset).metrics["mae"]
-              for index, (pixels, subset) in enumerate(zip(free_scenes, columns))]
+    # The main evaluation's pixels (its scenes' masks) and exposures, set here independently.
+    main_scenes = prepare_scenes([scenes / "test"], "test", rig, SIZE, 0)
+    columns = evaluation_columns(main_scenes, 40, config.eval_seed)
+    direct = []
+    for index, (pixels, subset) in enumerate(zip(free_scenes, columns)):
+        gain = methods[0].evaluations[0]["scenes"][index]["exposure"]
+        settings = EvalSettings(noise_scale=config.default_noise, seed=config.eval_seed, ps=config.ps_config(), exposure=gain)
+        direct.append(evaluate_scene(pixels, torch.as_tensor(patterns), settings, index, subset).metrics["mae"])
     assert [scene["mae"] for scene in methods[0].specular_free["scenes"]] == direct
 
     missing = dataclasses.replace(raw[1], diffuse=None)
     assert specular_free_scenes([raw[0], missing], rig) == (None, f"scene {missing.name} has no separate diffuse stack")
+    metal = dataclasses.replace(raw[1], diffuse=np.zeros_like(raw[1].diffuse))
+    assert "zero inside the mask" in specular_free_scenes([metal], rig)[1]
+    assert raw[0].without_specular().olat.dtype == raw[0].olat.dtype
+    assert dataclasses.replace(raw[0], diffuse=raw[0].diffuse.astype(np.float64)).without_specular().olat.dtype == raw[0].olat.dtype
 
 
 def test_specular_free_section_states_a_skipped_or_disabled_check():

@@ -7,8 +7,9 @@ analytic photometric stereo (``train.evaluate.evaluate_scene``, auto exposure):
 - NLopt searches of a family's parameters (``train.search.run_search``, at the default noise);
 - external pattern files (e.g. the published DDPS patterns);
 - the reference: the full OLAT stack (M = K) reconstructed with Woodham least squares.
-Every method is also measured at the default noise on the test scenes without their specular
-stacks (``specular_free_check``): the difference is the reconstructor's error on glossy pixels.
+Every method is also measured at the default noise and at the same exposures on the test scenes
+without their specular stacks (``specular_free_check``): the difference is what specular
+reflection costs the Lambertian reconstructor.
 Learning and search use the training scenes only; every number in the report comes from the
 test scenes. Outputs: ``results.json`` (every number and the resolved config), ``report.md`` and
 charts (``train.report``), and the learned / searched / heuristic pattern files in ``patterns/``.
@@ -117,9 +118,10 @@ class CompareConfig:
     """Evaluate the reference: the full OLAT stack (M = K) with Woodham least squares."""
     specular_free_check: bool = True
     """Also evaluate every method at the default noise on the test scenes with their specular
-    stacks removed (``Scene.without_specular``), which separates the error of the patterns from
-    the error a Lambertian reconstructor makes on glossy pixels. Skipped, with the reason in the
-    report, when a test scene has no separate diffuse stack."""
+    stacks removed (``Scene.without_specular``), at the exposures of its main evaluation, which
+    separates the error of the patterns from what specular reflection costs a Lambertian
+    reconstructor. Skipped, with the reason in the report, when a test scene has no usable
+    separate diffuse stack."""
     rerender_counts: tuple[int, ...] = ()
     """M values with one more learning run (first seed) that adds the re-rendering loss
     (TrainConfig.rerender_weight = ``rerender_weight``), compared with the normal-only run."""
@@ -556,23 +558,36 @@ def _init_worker() -> None:
     torch.set_num_threads(1)
 
 
-def _evaluate_job(patterns, reference: bool, noise: float) -> list[dict]:
-    """Per-scene metrics of one pattern set at one noise level (runs in a worker or in-process)."""
+def _evaluate_job(patterns, reference: bool, noise: float, exposures=None) -> list[dict]:
+    """Per-scene metrics of one pattern set at one noise level (runs in a worker or in-process);
+    ``exposures`` (one gain per scene) replaces auto exposure."""
     state = _WORKER_STATE
     settings = EvalSettings(method="woodham" if reference else "ps", noise_scale=noise, seed=state["seed"], ps=state["ps"])
     if not isinstance(patterns, str):
         patterns = torch.as_tensor(np.asarray(patterns, dtype=np.float32))
-    return [evaluate_scene(pixels, patterns, settings, index, subset).metrics
-            for index, (pixels, subset) in enumerate(zip(state["scenes"], state["columns"]))]
+    scenes = list(zip(state["scenes"], state["columns"]))
+    per_scene = [settings] * len(scenes) if exposures is None else [dataclasses.replace(settings, exposure=float(gain)) for gain in exposures]
+    return [evaluate_scene(pixels, patterns, scene_settings, index, subset).metrics
+            for index, ((pixels, subset), scene_settings) in enumerate(zip(scenes, per_scene))]
 
 
-def measure_methods(methods: list[Method], scenes, config: CompareConfig, noise_scales, progress: bool, what: str = "evaluating") -> tuple[list[int], dict]:
+def measure_methods(methods: list[Method], scenes, config: CompareConfig, noise_scales, progress: bool, what: str = "evaluating",
+                    exposures: dict | None = None) -> tuple[list[int], dict]:
     """Per-scene metrics of every distinct pattern set at every noise level on ``scenes``.
 
     Every method is measured on the same pixels (``config.eval_pixels_per_scene``) with the same
     noise draws, and a pattern set that occurs twice (e.g. an external file equal to a heuristic
     family) is measured once. With ``config.eval_workers`` > 1 the (pattern set, noise level) jobs
     run in forked processes.
+
+    Args:
+        methods: the pattern sets.
+        scenes: prepared test scenes (``ScenePixels``), measured in this order.
+        config: pixel subsets, solver, noise seed and workers.
+        noise_scales: noise levels (multipliers of the rig's noise variances).
+        progress: show a progress bar labelled ``what``.
+        exposures: optional {index of a method: [exposure gain per scene]} fixing the exposure of
+            that method's jobs (auto exposure otherwise).
 
     Returns:
         ``first_with_same_patterns(methods)`` and {(index of that first method, noise): [metrics
@@ -581,6 +596,7 @@ def measure_methods(methods: list[Method], scenes, config: CompareConfig, noise_
     _WORKER_STATE.update(scenes=scenes, columns=evaluation_columns(scenes, config.eval_pixels_per_scene, config.eval_seed),
                          ps=config.ps_config(), seed=config.eval_seed)
     representative = first_with_same_patterns(methods)
+    exposures = exposures or {}
     jobs = [(key, methods[key], float(noise)) for key in sorted(set(representative)) for noise in noise_scales]
     metrics: dict = {}
     bar = tqdm(total=len(jobs), desc=what, unit="set", disable=not progress)
@@ -590,14 +606,14 @@ def measure_methods(methods: list[Method], scenes, config: CompareConfig, noise_
             from concurrent.futures import ProcessPoolExecutor, as_completed
 
             with ProcessPoolExecutor(config.eval_workers, mp_context=multiprocessing.get_context("fork"), initializer=_init_worker) as pool:
-                futures = {pool.submit(_evaluate_job, method.patterns, method.kind == "reference", noise): (key, noise)
+                futures = {pool.submit(_evaluate_job, method.patterns, method.kind == "reference", noise, exposures.get(key)): (key, noise)
                            for key, method, noise in jobs}
                 for future in as_completed(futures):
                     metrics[futures[future]] = future.result()
                     bar.update(1)
         else:
             for key, method, noise in jobs:
-                metrics[(key, noise)] = _evaluate_job(method.patterns, method.kind == "reference", noise)
+                metrics[(key, noise)] = _evaluate_job(method.patterns, method.kind == "reference", noise, exposures.get(key))
                 bar.update(1)
     finally:
         bar.close()
@@ -617,8 +633,9 @@ def evaluate_methods(methods: list[Method], scenes, config: CompareConfig, expos
 
 
 def specular_free_scenes(scenes: list, rig) -> tuple[list | None, str | None]:
-    """The prepared test scenes without their specular stacks, or (None, the reason) when one of
-    them cannot be made so (``Scene.without_specular``)."""
+    """The test scenes (``Scene``, as loaded) without their specular stacks, prepared
+    (``ScenePixels``), or (None, the reason) when one of them cannot be made so
+    (``Scene.without_specular``)."""
     try:
         return [scene_pixels(scene.without_specular(), rig, require_normals=True) for scene in scenes], None
     except InputError as error:
@@ -626,10 +643,20 @@ def specular_free_scenes(scenes: list, rig) -> tuple[list | None, str | None]:
 
 
 def evaluate_specular_free(methods: list[Method], scenes, config: CompareConfig, exposure_ms: float, progress: bool) -> None:
-    """Fill every method's ``specular_free`` summary: the default noise on specular-free scenes."""
-    representative, metrics = measure_methods(methods, scenes, config, (config.default_noise,), progress, "specular-free check")
+    """Fill every method's ``specular_free`` summary: the default noise on the specular-free
+    ``scenes`` at the exposure each scene had in the method's main evaluation (``evaluate_methods``
+    ran first), so that only the specular light differs, not the exposure it forced."""
+    default = float(config.default_noise)
+
+    def main_exposures(method):
+        evaluation = next(e for e in method.evaluations if math.isclose(e["noise_scale"], default))
+        return [scene["exposure"] for scene in evaluation["scenes"]]
+
+    keys = set(first_with_same_patterns(methods))
+    exposures = {key: main_exposures(methods[key]) for key in keys}
+    representative, metrics = measure_methods(methods, scenes, config, (default,), progress, "specular-free check", exposures)
     for method, key in zip(methods, representative):
-        method.specular_free = summarise(metrics[(key, float(config.default_noise))], method.num_patterns, exposure_ms)
+        method.specular_free = summarise(metrics[(key, default)], method.num_patterns, exposure_ms)
 
 
 def method_record(method: Method, out_dir: Path) -> dict:

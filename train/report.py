@@ -405,16 +405,18 @@ def specular_free_section(results: dict, summary: dict, rows: list[dict]) -> lis
     free_rows = {(row["series"], row["M"]): row for row in free["rows"]}
     default = results["default_noise"]
     lines = heading + [
-        f"Every method again at noise scale {default:g} on the same test scenes, pixels and noise draws, but with each scene's "
-        "specular stack removed (the OLAT stack replaced by its diffuse part). What remains is the error of the patterns under noise "
-        "and shadows; the difference is the error the Lambertian reconstructor makes on glossy pixels (specular share = "
-        "difference / MAE), which the patterns change only in part.", ""]
+        f"Every method again at noise scale {default:g} on the same test scenes, pixels, noise draws and exposures (each scene "
+        "at the gain of the method's main evaluation), but with each scene's specular stack removed (the OLAT stack replaced by its "
+        "diffuse part). What remains is the error of the patterns under noise and shadows; the difference is what specular "
+        "reflection costs the Lambertian reconstructor (its model error on glossy pixels and clipped highlights). Specular share = "
+        "difference / MAE; '-' where every pixel is invalid both ways.", ""]
     body = []
     for row in sorted(rows, key=lambda r: (r["M"], _KIND_ORDER.get(r["kind"], 9), r["label"])):
         other = free_rows.get((row["series"], row["M"]))
         if other is None:
             continue
-        share = 100.0 * (1.0 - other["mae"] / row["mae"]) if row["mae"] > 0 else float("nan")
+        all_invalid = min(row["invalid_fraction"], other["invalid_fraction"]) > 0.99
+        share = None if all_invalid or not row["mae"] > 0 else 100.0 * (1.0 - other["mae"] / row["mae"])
         body.append([row["label"], str(row["M"]), _fmt(row["mae"]), _fmt(other["mae"]), _fmt(share, 0)])
     lines += [_table(["method", "M", "MAE (deg)", "specular-free MAE (deg)", "specular share (%)"], body), ""]
     with_specular = {c["M"]: c for c in summary["learned_vs_heuristic"] if math.isclose(c["noise_scale"], default)}
@@ -422,10 +424,10 @@ def specular_free_section(results: dict, summary: dict, rows: list[dict]) -> lis
         full = with_specular.get(c["M"])
         head = f"- M = {c['M']}: learned / best heuristic = "
         head += f"{full['ratio']:.3f} on the scenes ({full['best_heuristic']}), " if full else ""
-        lines.append(head + f"{c['ratio']:.3f} without specular reflection ({c['best_heuristic']}, {c['best_heuristic_mae']:.2f} deg).")
-    if free["learned_vs_heuristic"]:
-        lines += ["", "A ratio below 1 on the scenes but not without specular reflection means that the learned patterns win by how "
-                  "they fail on glossy pixels, not by a better-conditioned Lambertian solve."]
+        line = head + f"{c['ratio']:.3f} without specular reflection ({c['best_heuristic']}, {c['best_heuristic_mae']:.2f} deg)"
+        if full and full["ratio"] < 1 <= c["ratio"]:
+            line += "; the learned advantage is on the glossy pixels (the patterns were learned on glossy scenes)"
+        lines.append(line + ".")
     return lines + [""]
 
 
@@ -568,7 +570,9 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
             lines += [f"### {chart_titles[name]}", "", f"![{chart_titles[name]}]({file_name})", ""]
     lines += ["## Run", "",
               f"Learning {timings.get('learning_seconds', 0):.0f} s, searches {timings.get('search_seconds', 0):.0f} s, "
-              f"evaluation {timings.get('evaluation_seconds', 0):.0f} s. All numbers: `results.json`; resolved config: `config.json`; "
+              f"evaluation {timings.get('evaluation_seconds', 0):.0f} s"
+              + (f", specular-free check {timings['specular_free_seconds']:.0f} s" if "specular_free_seconds" in timings else "")
+              + ". All numbers: `results.json`; resolved config: `config.json`; "
               "pattern files: `patterns/`.", ""]
     path = out_dir / "report.md"
     write_text(path, "\n".join(lines))
