@@ -647,13 +647,8 @@ def evaluate_specular_free(methods: list[Method], scenes, config: CompareConfig,
     ``scenes`` at the exposure each scene had in the method's main evaluation (``evaluate_methods``
     ran first), so that only the specular light differs, not the exposure it forced."""
     default = float(config.default_noise)
-
-    def main_exposures(method):
-        evaluation = next(e for e in method.evaluations if math.isclose(e["noise_scale"], default))
-        return [scene["exposure"] for scene in evaluation["scenes"]]
-
-    keys = set(first_with_same_patterns(methods))
-    exposures = {key: main_exposures(methods[key]) for key in keys}
+    exposures = {index: [scene["exposure"] for scene in next(e for e in method.evaluations if math.isclose(e["noise_scale"], default))["scenes"]]
+                 for index, method in enumerate(methods)}
     representative, metrics = measure_methods(methods, scenes, config, (default,), progress, "specular-free check", exposures)
     for method, key in zip(methods, representative):
         method.specular_free = summarise(metrics[(key, default)], method.num_patterns, exposure_ms)
@@ -695,9 +690,9 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     resolved = compare_config_to_dict(config)
     write_json(out_dir / "config.json", resolved)
     test_raw = resolve_scenes(tuple(config.test_scenes), "test", rig, tuple(config.scene_size), config.scene_seed)
-    if not test_raw:
-        raise InputError("no test scenes to compare on")
     test_scenes = [scene_pixels(scene, rig, require_normals=True) for scene in test_raw]
+    free_scenes, free_reason = specular_free_scenes(test_raw, rig) if config.specular_free_check else (None, None)
+    del test_raw  # learning runs next: keep the prepared pixels only, not the full-frame stacks
     methods, skipped, timings = collect_methods(config, rig, out_dir / "patterns", progress, logdir=out_dir / "tensorboard")
     if not methods:
         # CompareConfig refuses configs that list nothing, so every listed method was skipped.
@@ -707,14 +702,12 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     evaluate_methods(methods, test_scenes, config, exposure_ms, progress)
     timings["evaluation_seconds"] = time.perf_counter() - start
     specular_free = {"enabled": config.specular_free_check}
-    if config.specular_free_check:
-        free_scenes, reason = specular_free_scenes(test_raw, rig)
-        if free_scenes is None:
-            specular_free["skipped"] = reason
-        else:
-            start = time.perf_counter()
-            evaluate_specular_free(methods, free_scenes, config, exposure_ms, progress)
-            timings["specular_free_seconds"] = time.perf_counter() - start
+    if free_reason is not None:
+        specular_free["skipped"] = free_reason
+    elif free_scenes is not None:
+        start = time.perf_counter()
+        evaluate_specular_free(methods, free_scenes, config, exposure_ms, progress)
+        timings["specular_free_seconds"] = time.perf_counter() - start
     results = {
         "config": resolved,
         "rig": rig.name,
