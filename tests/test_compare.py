@@ -121,6 +121,19 @@ def test_unsupported_and_mismatched_methods_are_skipped_with_a_reason(scenes, tm
     assert reasons["ddps_learned_M2"] == reasons["ddps_learned_M4"] == "M is not in pattern_counts"
 
 
+def test_unreadable_external_file_stops_the_comparison_before_learning(scenes, tmp_path, monkeypatch):
+    bad = tmp_path / "bad.npy"
+    np.save(bad, np.full((2, 9, 16, 3), 1.5))  # set values outside [0, 1]
+    config = tiny_config(scenes, external=[{"name": "bad", "path": str(bad)}], learned_counts=[2])
+
+    def no_learning(*args, **kwargs):
+        raise AssertionError("learning ran before the external files were read")
+
+    monkeypatch.setattr("train.compare.learned_method", no_learning)
+    with pytest.raises(InputError, match="bad.npy"):
+        collect_methods(config, load_rig(), tmp_path / "patterns", progress=False)
+
+
 def fake_results():
     """Results of three heuristics, two learned seeds and a search at M = 2, two noise levels."""
     def method(kind, series, mae_low, mae_high, seed=None, cost=None):

@@ -448,13 +448,35 @@ def searched_method(config: CompareConfig, run: SearchRun, pattern_dir: Path, pr
                   patterns, str(path), meta["seconds"], info=info)
 
 
+def external_methods(config: CompareConfig, rig) -> tuple[list[Method], list[dict]]:
+    """The ``[[external]]`` pattern sets that fit the rig and the compared M, and the others with
+    the reason they are skipped.
+
+    Raises:
+        InputError: a file is unreadable or its values are not patterns (``load_patterns``).
+    """
+    methods: list[Method] = []
+    skipped: list[dict] = []
+    for item in config.external:
+        patterns, _ = load_patterns(item.path)
+        count = patterns.shape[0]
+        if patterns.shape[1:3] != (rig.rows, rig.cols):
+            skipped.append({"method": item.name, "M": count, "reason": f"patterns are {patterns.shape[1]} x {patterns.shape[2]}, the rig is {rig.rows} x {rig.cols}"})
+        elif count not in config.pattern_counts:
+            skipped.append({"method": item.name, "M": count, "reason": "M is not in pattern_counts"})
+        else:
+            methods.append(Method(f"external_{item.name}", "external", f"external:{item.name}", item.name, count, patterns, item.path))
+    return methods, skipped
+
+
 def collect_methods(config: CompareConfig, rig, pattern_dir: Path, progress: bool, logdir: Path | None = None) -> tuple[list[Method], list[dict], dict]:
     """Every pattern set of the comparison, the skipped ones with the reason, and phase timings.
 
     Learning and searches run here (TensorBoard logs under ``logdir`` when given).
     """
+    # External files are read first: an unreadable one stops the comparison before minutes of learning.
+    external, skipped = external_methods(config, rig)
     methods: list[Method] = []
-    skipped: list[dict] = []
     timings = {"learning_seconds": 0.0, "search_seconds": 0.0}
     for count in config.pattern_counts:
         for name in config.heuristics:
@@ -479,15 +501,7 @@ def collect_methods(config: CompareConfig, rig, pattern_dir: Path, progress: boo
         start = time.perf_counter()
         methods.append(searched_method(config, run, pattern_dir, progress, logdir))
         timings["search_seconds"] += time.perf_counter() - start
-    for item in config.external:
-        patterns, _ = load_patterns(item.path)
-        count = patterns.shape[0]
-        if patterns.shape[1:3] != (rig.rows, rig.cols):
-            skipped.append({"method": item.name, "M": count, "reason": f"patterns are {patterns.shape[1]} x {patterns.shape[2]}, the rig is {rig.rows} x {rig.cols}"})
-        elif count not in config.pattern_counts:
-            skipped.append({"method": item.name, "M": count, "reason": "M is not in pattern_counts"})
-        else:
-            methods.append(Method(f"external_{item.name}", "external", f"external:{item.name}", item.name, count, patterns, item.path))
+    methods += external
     if config.include_olat_woodham:
         methods.append(Method("olat_woodham", "reference", "olat_woodham", f"OLAT + Woodham (M = {rig.num_lights})", rig.num_lights, "olat"))
     return methods, skipped, timings
