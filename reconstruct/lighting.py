@@ -121,10 +121,13 @@ class LightField:
         points = self.points[rows]
         return torch.addmm(-(points * normal.T).sum(1, keepdim=True), normal.T, self._lights_t).gt_(0)
 
-    def _sees_all(self, rows, normal: torch.Tensor) -> bool:
-        """Whether every pixel of ``rows`` with normals (3, n) sees every light (``sees_all_lights``:
-        a test on the few hull lights that never claims a shadowed light is lit)."""
-        return bool(sees_all_lights(normal, self.points[rows].T, self._corners).all())
+    def sees_all(self, index, normal: torch.Tensor) -> torch.Tensor:
+        """(n,) bool: whether pixels ``index`` ((n,) long indices, or None for all) with normals
+        (3, n) see every light (``sees_all_lights``: a test on the few hull lights that never
+        claims a shadowed light is lit). One call for all the pixels: per-block calls cost more
+        in overhead than the test itself."""
+        points = self.points.T if index is None else self.points[index].T
+        return sees_all_lights(normal, points, self._corners)
 
     def block_rows(self, index, block_size: int | None = None):
         """Yield (start, stop, rows): blocks of entries start:stop of ``index`` ((n,) long pixel
@@ -144,19 +147,21 @@ class LightField:
         """(n,) bool: whether normals ``first`` and ``second`` (3, n) of pixels ``index`` (or all)
         have different shadow masks. Compared block by block, never stored."""
         differ = torch.empty(first.shape[1], dtype=torch.bool)
+        both_whole = self.sees_all(index, first) & self.sees_all(index, second)
         for start, stop, rows in self.cache_rows(index):
-            if self._sees_all(rows, first[:, start:stop]) and self._sees_all(rows, second[:, start:stop]):
+            if bool(both_whole[start:stop].all()):
                 differ[start:stop] = False  # both masks are all ones
                 continue
             lit = self._lit(rows, first[:, start:stop])
             differ[start:stop] = lit.ne_(self._lit(rows, second[:, start:stop])).amax(dim=1) > 0
         return differ
 
-    def shadowed_weights(self, rows, normal: torch.Tensor) -> torch.Tensor:
+    def shadowed_weights(self, rows, normal: torch.Tensor, whole: torch.Tensor) -> torch.Tensor:
         """(n, K) s_k f_k / d_k of pixels ``rows`` (slice or indices) with normals (3, n); a view
         of the stored weights (not to be modified) when every pixel of the block sees every
-        light, which skips the (n, K) shadow test for most pixels facing the display."""
-        if self._sees_all(rows, normal):
+        light (``whole``, their (n,) ``sees_all``), which skips the (n, K) shadow test for most
+        pixels facing the display."""
+        if bool(whole.all()):
             return self.weights[rows]
         return self._lit(rows, normal).mul_(self.weights[rows])
 
@@ -173,6 +178,7 @@ class LightField:
             (M, 3, 3, stop - start) b[m, c, :, n] = sum_k E[m, k, c] f_k s_k l_k.
         """
         lighting = lighting.detach()
+        whole = self.sees_all(index, normal)
         for start, stop, rows in self.block_rows(index):
             # The (pixels x lights) work runs in cache-sized sub-blocks, the per-pixel algebra on
             # the caller's larger blocks (fewer small operations).
@@ -180,8 +186,8 @@ class LightField:
             for sub_start in range(0, stop - start, self.cache_block):
                 sub_stop = min(sub_start + self.cache_block, stop - start)
                 sub_rows = slice(start + sub_start, start + sub_stop) if index is None else rows[sub_start:sub_stop]
-                block_normal = normal[:, start + sub_start : start + sub_stop]
-                torch.mm(self.shadowed_weights(sub_rows, block_normal), lighting, out=summed[sub_start:sub_stop])
+                block = slice(start + sub_start, start + sub_stop)
+                torch.mm(self.shadowed_weights(sub_rows, normal[:, block], whole[block]), lighting, out=summed[sub_start:sub_stop])
             summed = summed.T.reshape(-1, 3, 4, stop - start)
             yield start, stop, summed[:, :, :3] - self.points[rows].T[None, None] * summed[:, :, 3:]
 
@@ -312,8 +318,9 @@ class _ShadowedLighting(torch.autograd.Function):
         grad_summed = torch.cat([grad_vectors, -(grad_vectors * points_t).sum(2, keepdim=True)], dim=2)
         grad_summed = grad_summed.reshape(-1, field.num_pixels)  # (12 M, N)
         grad_lighting = torch.zeros((field.lights.shape[0], grad_summed.shape[0]), dtype=grad_vectors.dtype)
+        whole = field.sees_all(None, normal)
         for start, stop, rows in field.cache_rows(None):
-            weight = field.shadowed_weights(rows, normal[:, start:stop])
+            weight = field.shadowed_weights(rows, normal[:, start:stop], whole[start:stop])
             grad_lighting.addmm_(weight.T, grad_summed[:, start:stop].T)
         return grad_lighting, None, None, None
 

@@ -145,8 +145,9 @@ class _OlatEvaluator:
         if record:
             dark = torch.empty(normal.shape[1], dtype=torch.bool)
             saturated = torch.empty_like(dark)
+        whole = self.field.sees_all(index, normal)
         for start, stop, rows in self.field.block_rows(index):
-            weight = self.field.shadowed_weights(rows, normal[:, start:stop])
+            weight = self.field.shadowed_weights(rows, normal[:, start:stop], whole[start:stop])
             captures, equation_weight, scale = self._block(rows)
             raw = olat_moments(weight, self.light_emission, captures, equation_weight, self.field.points[rows], self.field.lights)
             moments.write(start, stop, scaled_moments(*raw, scale))

@@ -45,12 +45,15 @@ def test_light_field_skips_the_shadow_test_only_where_it_changes_nothing():
     tilted = torch.randn(3, count, generator=generator, dtype=torch.float64)
     tilted[2] = -tilted[2].abs()
     tilted = tilted / tilted.norm(dim=0)  # many pixels have lights behind their tangent plane
-    assert field._sees_all(slice(0, 500), view[:, :500]) and not field._sees_all(slice(0, 500), tilted[:, :500])
+    first = torch.arange(500)
+    assert field.sees_all(first, view[:, :500]).all() and not field.sees_all(first, tilted[:, :500]).all()
     for normal in (view, tilted):
         exact = ((lights @ normal) > (normal * points.T).sum(0)).T.double() * field.weights
+        whole = field.sees_all(None, normal)
+        assert not (whole & ~(exact == field.weights).all(1)).any()  # 'sees all' is never claimed for a shadowed pixel
         for rows in (slice(0, 500), torch.arange(0, count, 7)):
-            columns = rows if isinstance(rows, slice) else rows
-            assert torch.equal(field.shadowed_weights(rows, normal[:, columns]), exact[rows])
+            assert torch.equal(field.sees_all(torch.arange(count)[rows], normal[:, rows]), whole[rows])
+            assert torch.equal(field.shadowed_weights(rows, normal[:, rows], whole[rows]), exact[rows])
     exact_differ = (((lights @ view) > (view * points.T).sum(0)) != ((lights @ tilted) > (tilted * points.T).sum(0))).any(0)
     assert torch.equal(field.masks_differ(None, view, tilted), exact_differ) and exact_differ.any()
     assert not field.masks_differ(None, view, view).any()
