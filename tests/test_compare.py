@@ -169,6 +169,18 @@ def test_summary_tables_against_plain_computation():
     assert summary["specular_free"] == {"rows": [], "learned_vs_heuristic": []}
 
 
+def test_learned_against_more_captures_against_plain_computation():
+    results = fake_results()
+    assert summary_tables(results)["learned_vs_more_captures"] == []  # one M only
+    at_four = [dict(m, id=m["id"] + "_4", M=4, evaluations=[dict(e, mae=e["mae"] - 2.0) for e in m["evaluations"]]) for m in results["methods"]]
+    results["methods"] += at_four
+    results["pattern_counts"] = [2, 4]
+    pairs = summary_tables(results)["learned_vs_more_captures"]
+    # At the default noise 0.5: learned M = 2 averages 8.5; the best heuristic at M = 4 is a (10 - 2).
+    assert [(c["M"], c["heuristic_M"], c["best_heuristic"]) for c in pairs] == [(2, 4, "a")]
+    assert pairs[0]["learned_mae"] == pytest.approx(8.5) and pairs[0]["ratio"] == pytest.approx(8.5 / 8.0)
+
+
 def test_specular_free_summary_against_plain_computation():
     results = fake_results()
     for method, mae in zip(results["methods"], (4.0, 3.0, 6.0, 3.5, 4.5, 5.0)):

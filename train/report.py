@@ -89,7 +89,9 @@ def summary_tables(results: dict) -> dict:
         ratio learned / best heuristic, and the same against the best of heuristics and searches),
         ``seed_spread`` (per M and noise with several seeds: mean, std, min, max MAE) and
         ``rerender`` (per M and noise: the normal-only learned MAE of the same seed against the
-        normal + re-rendering learned MAE, and their ratio).
+        normal + re-rendering learned MAE, and their ratio), ``specular_free`` (rows and ratios
+        without the specular stacks) and ``learned_vs_more_captures``
+        (``learned_against_more_captures`` at the default noise).
     """
     comparisons, spread, rerender = [], [], []
     for noise in results["noise_scales"]:
@@ -121,8 +123,9 @@ def summary_tables(results: dict) -> dict:
     default = results["default_noise"]
     free_rows = aggregate_rows(results, default, specular_free=True)
     specular_free = {"rows": free_rows, "learned_vs_heuristic": learned_against_best(free_rows, results["pattern_counts"], default)}
-    return {"rows": aggregate_rows(results, default), "learned_vs_heuristic": comparisons, "seed_spread": spread, "rerender": rerender,
-            "specular_free": specular_free}
+    rows = aggregate_rows(results, default)
+    return {"rows": rows, "learned_vs_heuristic": comparisons, "seed_spread": spread, "rerender": rerender,
+            "specular_free": specular_free, "learned_vs_more_captures": learned_against_more_captures(rows)}
 
 
 def learned_against_best(rows: list[dict], counts, noise: float) -> list[dict]:
@@ -145,6 +148,27 @@ def learned_against_best(rows: list[dict], counts, noise: float) -> list[dict]:
             "best_tuned": best_tuned["label"], "best_tuned_mae": best_tuned["mae"], "ratio_tuned": learned["mae"] / max(best_tuned["mae"], 1e-12),
         })
     return comparisons
+
+
+def learned_against_more_captures(rows: list[dict]) -> list[dict]:
+    """For every learned M and every larger M with heuristic rows (``aggregate_rows`` at one noise
+    level): the learned MAE at M against the best heuristic at the larger M. A ratio <= 1 means
+    the learned patterns reach that accuracy with fewer captures.
+
+    Returns:
+        dicts with M, learned_mae, heuristic_M, best_heuristic, best_heuristic_mae and ratio,
+        sorted by (M, heuristic_M).
+    """
+    learned = {row["M"]: row for row in rows if row["kind"] == "learned"}
+    best: dict = {}
+    for row in rows:
+        if row["kind"] == "heuristic" and (row["M"] not in best or row["mae"] < best[row["M"]]["mae"]):
+            best[row["M"]] = row
+    return [
+        {"M": count, "learned_mae": learned[count]["mae"], "heuristic_M": more, "best_heuristic": best[more]["series"],
+         "best_heuristic_mae": best[more]["mae"], "ratio": learned[count]["mae"] / max(best[more]["mae"], 1e-12)}
+        for count in sorted(learned) for more in sorted(best) if more > count
+    ]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -523,6 +547,15 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
                 verdict = "grows" if change < -0.01 else "shrinks" if change > 0.01 else "stays about the same"
                 lines.append(f"- M = {count}: ratio {trend}; the learned advantage {verdict} as the noise rises.")
         lines.append("")
+
+    more_captures = summary.get("learned_vs_more_captures") or []
+    if more_captures:
+        lines += [f"## Fewer captures for the same accuracy? (noise scale {default:g})", "",
+                  "Learned patterns at M against the best heuristic family at a larger M (ratio <= 1: the learned set matches "
+                  "it with fewer captures):", ""]
+        body = [[str(c["M"]), _fmt(c["learned_mae"]), str(c["heuristic_M"]), f"{c['best_heuristic']} ({_fmt(c['best_heuristic_mae'])})",
+                 _fmt(c["ratio"], 3), "yes" if c["ratio"] <= 1 else "no"] for c in more_captures]
+        lines += [_table(["learned M", "learned MAE", "heuristic M", "best heuristic (MAE)", "ratio", "matched"], body), ""]
 
     lines += specular_free_section(results, summary, rows)
 
