@@ -40,6 +40,10 @@ CACHE_FLOATS = 1 << 18
 core's L2 cache (larger blocks spill to memory and run ~2x slower)."""
 
 
+SEES_ALL_FLOATS = 1 << 20
+"""Entries of one (hull lights x pixels) temporary of ``LightField.sees_all`` (4 MB in float32)."""
+
+
 class LightField:
     """The superpixels' light at N surface points, evaluated in blocks of pixels.
 
@@ -124,10 +128,16 @@ class LightField:
     def sees_all(self, index, normal: torch.Tensor) -> torch.Tensor:
         """(n,) bool: whether pixels ``index`` ((n,) long indices, or None for all) with normals
         (3, n) see every light (``sees_all_lights``: a test on the few hull lights that never
-        claims a shadowed light is lit). One call for all the pixels: per-block calls cost more
-        in overhead than the test itself."""
+        claims a shadowed light is lit). Runs in chunks whose (hull lights x pixels) product
+        stays near ``SEES_ALL_FLOATS`` entries: per cache block, the calls' overhead would cost
+        more than the test; in one piece, the product of a full frame would take ~100 MB."""
         points = self.points.T if index is None else self.points[index].T
-        return sees_all_lights(normal, points, self._corners)
+        count = normal.shape[1]
+        step = max(1, SEES_ALL_FLOATS // self._corners.shape[0])
+        if count <= step:
+            return sees_all_lights(normal, points, self._corners)
+        return torch.cat([sees_all_lights(normal[:, start : start + step], points[:, start : start + step], self._corners)
+                          for start in range(0, count, step)])
 
     def block_rows(self, index, block_size: int | None = None):
         """Yield (start, stop, rows): blocks of entries start:stop of ``index`` ((n,) long pixel

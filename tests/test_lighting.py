@@ -34,7 +34,7 @@ def test_sees_all_lights_never_claims_a_shadowed_light_in_front():
         assert float(claimed.double().mean()) > 0.2 and bool((exact & ~claimed).double().mean() < 0.01)
 
 
-def test_light_field_skips_the_shadow_test_only_where_it_changes_nothing():
+def test_light_field_skips_the_shadow_test_only_where_it_changes_nothing(monkeypatch):
     lights = load_rig().lights(torch.float64)
     generator = torch.Generator().manual_seed(1)
     count = 3000
@@ -54,6 +54,9 @@ def test_light_field_skips_the_shadow_test_only_where_it_changes_nothing():
         for rows in (slice(0, 500), torch.arange(0, count, 7)):
             assert torch.equal(field.sees_all(torch.arange(count)[rows], normal[:, rows]), whole[rows])
             assert torch.equal(field.shadowed_weights(rows, normal[:, rows], whole[rows]), exact[rows])
+        with monkeypatch.context() as patch:
+            patch.setattr("reconstruct.lighting.SEES_ALL_FLOATS", 1000)  # several chunks
+            assert torch.equal(field.sees_all(None, normal), whole)
     exact_differ = (((lights @ view) > (view * points.T).sum(0)) != ((lights @ tilted) > (tilted * points.T).sum(0))).any(0)
     assert torch.equal(field.masks_differ(None, view, tilted), exact_differ) and exact_differ.any()
     assert not field.masks_differ(None, view, view).any()
