@@ -13,7 +13,9 @@ from capture_sim.errors import InputError
 
 
 def refuse_overwriting(outputs, inputs) -> None:
-    """Raise ``InputError`` if an output file would replace an input file or another output.
+    """Raise ``InputError`` if an output file would replace an input file or another output, or
+    if an output path holds something other than a regular file (``check_replaceable``): commands
+    call this before their work, so that such an output fails at once, not after it.
 
     Args:
         outputs: (what, path or None) pairs of files a command will write.
@@ -26,10 +28,20 @@ def refuse_overwriting(outputs, inputs) -> None:
     for what, path in outputs:
         if path is None:
             continue
+        check_replaceable(path)
         resolved = Path(path).resolve()
         if resolved in seen:
             raise InputError(f"{what} {path} is also the {seen[resolved]}: writing it would destroy that file")
         seen[resolved] = what
+
+
+def check_replaceable(path: str | Path) -> None:
+    """Raise ``InputError`` if ``path`` exists and is not a regular file: a rename would silently
+    replace a device, FIFO or socket (e.g. /dev/null run as root), and a folder would fail with
+    the temporary file's name."""
+    path = Path(path)
+    if path.exists() and not path.is_file():
+        raise InputError(f"cannot write {path}: it exists and is not a regular file")
 
 
 @contextmanager
@@ -42,10 +54,7 @@ def atomic_path(path: str | Path, suffix: str = "", sync: bool = False):
     it costs a disk flush per file).
     """
     path = Path(path)
-    if path.exists() and not path.is_file():
-        # A rename would silently replace a device, FIFO or socket (e.g. /dev/null run as root),
-        # and a folder would fail with the temporary file's name.
-        raise InputError(f"cannot write {path}: it exists and is not a regular file")
+    check_replaceable(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or ".tmp", dir=path.parent)

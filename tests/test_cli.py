@@ -161,6 +161,8 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         (["evaluate", "--patterns", str(good), "--scenes", str(scene_file), "--json", str(good)], "would destroy"),
         (["train", "--init", str(good), "--out", str(good)], "would destroy"),
         (["bench", "ps", "--sweep", "--json", str(tmp_path / "sweep.png")], "would destroy"),
+        # An output path that is a folder fails before any work (train used to learn first).
+        (["train", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "twin")], "exists and is not a regular file"),
         (["evaluate", "--patterns", "olat", "--scenes", str(scene_file), str(tmp_path / "twin" / scene_file.name), "--out", str(tmp_path / "e")],
          "share the file name"),
         (["train", "--M", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "t.npz")], "init 'auto' starts M = 1"),
@@ -176,6 +178,7 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         assert run(argv) == 2, argv
         err = capsys.readouterr().err.strip().splitlines()[-1]  # after any progress bar's line
         assert err.startswith("displex: error:") and message in err, (argv, err)
+    assert not (tmp_path / "twin.ckpt.pt").exists()  # refused before learning wrote a checkpoint
 
 
 def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeypatch):
