@@ -206,6 +206,16 @@ def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeyp
     assert capsys.readouterr().err.strip().startswith("displex: error: out of memory")
 
 
+def test_ctrl_c_gives_one_line_with_the_resume_hint(tmp_path, scene_file, capsys, monkeypatch):
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("train.learn.train_patterns", interrupted)
+    assert run(["train", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "k.npz")]) == 130
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("displex: interrupted; rerun the same command") and err.endswith("k.ckpt.pt") and "\n" not in err, err
+
+
 def test_patterns_make_and_export_round_trip(tmp_path):
     patterns = tmp_path / "p.npz"
     assert run(["patterns", "make", "--family", "tri_complementary", "--M", "2", "--out", str(patterns)]) == 0

@@ -113,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--rerender-weight", type=float, default=None, help="weight of the re-rendering loss (0 = normals only)")
     train.add_argument("--out", type=_path, required=True, help="learned pattern file (.npz)")
     train.add_argument("--fresh", action="store_true", help="start afresh: delete the checkpoint of --out instead of resuming it")
-    train.set_defaults(handler=_train)
+    train.set_defaults(handler=_train, interrupted=_train_interrupted)
 
     search = commands.add_parser("search", help="NLopt search over a heuristic family's parameters")
     search.add_argument("--config", type=_path, default=None, help="TOML in configs/search/ (flags override it)")
@@ -131,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     compare = commands.add_parser("compare", help="compare learned, searched, heuristic and external patterns on held-out scenes")
     compare.add_argument("--config", type=_path, required=True, help="TOML in configs/compare/ (or a preset name: default, demo)")
     compare.add_argument("--out", type=_path, default=None, help="output folder (default: the config's `out`)")
-    compare.set_defaults(handler=_compare)
+    compare.set_defaults(handler=_compare, interrupted="rerun the same command to reuse its finished learning and search runs and resume the interrupted one")
 
     export = commands.add_parser("export", help="write display frames, manifest and contact sheet for the rig")
     export.add_argument("--patterns", type=_path, required=True)
@@ -163,7 +163,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo = commands.add_parser("demo", help="the main job: scenes, learning, search, comparison, report and charts")
     demo.add_argument("--out", type=_path, default=Path("runs/demo"))
     demo.add_argument("--steps", type=int, default=None, help="learning steps of every learned pattern set (default: 150, and 100 at M = 10, as configs/compare/demo.toml sets them)")
-    demo.set_defaults(handler=_demo)
+    demo.set_defaults(handler=_demo, interrupted="rerun the same command to reuse its finished learning and search runs and resume the interrupted one")
 
     bench = commands.add_parser("bench", help="benchmarks written as JSON (medians of several runs)")
     bench.add_argument("target", help="what to benchmark: sim, ps, train, invrender")
@@ -209,6 +209,12 @@ def _train(args) -> None:
     result = train_patterns(config, args.out, logdir=args.logdir, checkpoint_mode="fresh" if args.fresh else "resume")
     last = f", validation MAE {result.val_history[-1][1]:.2f} deg" if result.val_history else " (not validated: pass --val-scenes)"
     print(f"wrote learned patterns to {args.out}{last}")
+
+
+def _train_interrupted(args) -> str:
+    from train.learn import checkpoint_path
+
+    return f"rerun the same command to resume from its last checkpoint, {checkpoint_path(args.out)}"
 
 
 def _search(args) -> None:
@@ -356,7 +362,8 @@ def _show_warning(message, category, filename, lineno, file=None, line=None, _de
 
 
 def run(argv: list[str] | None = None) -> int:
-    """Run one command; returns 0 on success, 2 on bad input (after printing one error line)."""
+    """Run one command; returns 0 on success, 2 on bad input (after printing one error line), 130
+    when interrupted by Ctrl-C (one line; commands that resume say how)."""
     with warnings.catch_warnings():  # restores the warning hook afterwards (run is also called in-process)
         warnings.showwarning = _show_warning
         return _run(argv)
@@ -370,6 +377,11 @@ def _run(argv: list[str] | None) -> int:
         return 2
     try:
         args.handler(args)
+    except KeyboardInterrupt:
+        hint = getattr(args, "interrupted", None)
+        hint = hint(args) if callable(hint) else hint
+        print(f"\ndisplex: interrupted{'; ' + hint if hint else ''}", file=sys.stderr)
+        return 130  # the shell's status for a SIGINT
     except InputError as err:
         print(f"displex: error: {err}", file=sys.stderr)
         return 2
