@@ -47,6 +47,10 @@ def _path(text: str) -> Path:
     return Path(text)
 
 
+RERUN_REUSES_RUNS = "rerun the same command to reuse its finished learning and search runs and resume the interrupted one"
+"""What an interrupted compare or demo tells the user."""
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="displex",
@@ -131,7 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
     compare = commands.add_parser("compare", help="compare learned, searched, heuristic and external patterns on held-out scenes")
     compare.add_argument("--config", type=_path, required=True, help="TOML in configs/compare/ (or a preset name: default, demo)")
     compare.add_argument("--out", type=_path, default=None, help="output folder (default: the config's `out`)")
-    compare.set_defaults(handler=_compare, interrupted="rerun the same command to reuse its finished learning and search runs and resume the interrupted one")
+    compare.set_defaults(handler=_compare, interrupted=RERUN_REUSES_RUNS)
 
     export = commands.add_parser("export", help="write display frames, manifest and contact sheet for the rig")
     export.add_argument("--patterns", type=_path, required=True)
@@ -163,7 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo = commands.add_parser("demo", help="the main job: scenes, learning, search, comparison, report and charts")
     demo.add_argument("--out", type=_path, default=Path("runs/demo"))
     demo.add_argument("--steps", type=int, default=None, help="learning steps of every learned pattern set (default: 150, and 100 at M = 10, as configs/compare/demo.toml sets them)")
-    demo.set_defaults(handler=_demo, interrupted="rerun the same command to reuse its finished learning and search runs and resume the interrupted one")
+    demo.set_defaults(handler=_demo, interrupted=RERUN_REUSES_RUNS)
 
     bench = commands.add_parser("bench", help="benchmarks written as JSON (medians of several runs)")
     bench.add_argument("target", help="what to benchmark: sim, ps, train, invrender")

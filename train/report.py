@@ -128,26 +128,41 @@ def summary_tables(results: dict) -> dict:
             "specular_free": specular_free, "learned_vs_more_captures": learned_against_more_captures(rows)}
 
 
+def lowest_mae_per_m(rows: list[dict], kinds: tuple[str, ...]) -> dict:
+    """M -> the row of one of ``kinds`` with the lowest MAE at that M (the first on ties)."""
+    best: dict = {}
+    for row in rows:
+        if row["kind"] in kinds and (row["M"] not in best or row["mae"] < best[row["M"]]["mae"]):
+            best[row["M"]] = row
+    return best
+
+
+def learned_rows_per_m(rows: list[dict]) -> dict:
+    """M -> the learned row (``aggregate_rows`` averages the seeds into one row per M)."""
+    learned: dict = {}
+    for row in rows:
+        if row["kind"] == "learned":
+            learned.setdefault(row["M"], row)
+    return learned
+
+
 def learned_against_best(rows: list[dict], counts, noise: float) -> list[dict]:
     """Per M with learned and heuristic rows (``aggregate_rows`` at one noise level): the learned
     MAE, the best heuristic family and MAE, their ratio, and the same against the best of the
     heuristics and the searches ("tuned")."""
-    comparisons = []
-    for count in counts:
-        at_m = [row for row in rows if row["M"] == count]
-        learned = next((row for row in at_m if row["kind"] == "learned"), None)
-        heuristics = [row for row in at_m if row["kind"] == "heuristic"]
-        tuned = heuristics + [row for row in at_m if row["kind"] == "search"]
-        if learned is None or not heuristics:
-            continue
-        best = min(heuristics, key=lambda row: row["mae"])
-        best_tuned = min(tuned, key=lambda row: row["mae"])
-        comparisons.append({
-            "M": count, "noise_scale": noise, "learned_mae": learned["mae"],
-            "best_heuristic": best["series"], "best_heuristic_mae": best["mae"], "ratio": learned["mae"] / max(best["mae"], 1e-12),
-            "best_tuned": best_tuned["label"], "best_tuned_mae": best_tuned["mae"], "ratio_tuned": learned["mae"] / max(best_tuned["mae"], 1e-12),
-        })
-    return comparisons
+    learned = learned_rows_per_m(rows)
+    best = lowest_mae_per_m(rows, ("heuristic",))
+    best_tuned = lowest_mae_per_m(rows, ("heuristic", "search"))
+    return [
+        {
+            "M": count, "noise_scale": noise, "learned_mae": learned[count]["mae"],
+            "best_heuristic": best[count]["series"], "best_heuristic_mae": best[count]["mae"],
+            "ratio": learned[count]["mae"] / max(best[count]["mae"], 1e-12),
+            "best_tuned": best_tuned[count]["label"], "best_tuned_mae": best_tuned[count]["mae"],
+            "ratio_tuned": learned[count]["mae"] / max(best_tuned[count]["mae"], 1e-12),
+        }
+        for count in counts if count in learned and count in best
+    ]
 
 
 def learned_against_more_captures(rows: list[dict]) -> list[dict]:
@@ -159,11 +174,8 @@ def learned_against_more_captures(rows: list[dict]) -> list[dict]:
         dicts with M, learned_mae, heuristic_M, best_heuristic, best_heuristic_mae and ratio,
         sorted by (M, heuristic_M).
     """
-    learned = {row["M"]: row for row in rows if row["kind"] == "learned"}
-    best: dict = {}
-    for row in rows:
-        if row["kind"] == "heuristic" and (row["M"] not in best or row["mae"] < best[row["M"]]["mae"]):
-            best[row["M"]] = row
+    learned = learned_rows_per_m(rows)
+    best = lowest_mae_per_m(rows, ("heuristic",))
     return [
         {"M": count, "learned_mae": learned[count]["mae"], "heuristic_M": more, "best_heuristic": best[more]["series"],
          "best_heuristic_mae": best[more]["mae"], "ratio": learned[count]["mae"] / max(best[more]["mae"], 1e-12)}
