@@ -71,15 +71,40 @@ class LightField:
         Raises:
             InputError: the falloff is not positive and finite at a pixel with good geometry.
         """
+        self._set_geometry(points, lights, block_size)
+        # The unshadowed weights f_k / d_k are computed once and kept (N x K floats): every later
+        # evaluation then costs a shadow test and a matrix product instead of the distances again.
+        self.weights, self.bad = self._unshadowed_weights(falloff, min_distance)
+
+    @classmethod
+    def from_weights(cls, points: torch.Tensor, lights: torch.Tensor, weights: torch.Tensor, block_size: int) -> "LightField":
+        """A field over unshadowed weights computed elsewhere, for callers that solve the same
+        pixels many times and keep them (learning: ``reconstruct.unrolled_ps.light_reach``).
+
+        Args:
+            points: (N, 3) surface points, metres, camera frame.
+            lights: (K, 3) superpixel positions, metres, camera frame.
+            weights: (N, K) contiguous f_k / d_k, positive and finite (not checked: a scan of
+                N x K values would cost more than the solve it serves). Used as is, not copied.
+            block_size: pixels per block of (pixels x lights) work.
+
+        No pixel is marked ``bad``: the caller vouches for the geometry.
+        """
+        check_array("weights", weights, (points.shape[0], lights.shape[0]), finite=False)
+        if not weights.is_contiguous():
+            raise InputError("LightField.from_weights needs contiguous (N, K) weights (pixel-major)")
+        field = cls.__new__(cls)
+        field._set_geometry(points, lights, block_size)
+        field.weights, field.bad = weights, torch.zeros(points.shape[0], dtype=torch.bool)
+        return field
+
+    def _set_geometry(self, points: torch.Tensor, lights: torch.Tensor, block_size: int) -> None:
         self.points = points
         self.lights = lights
         self.block_size = block_size
         self.cache_block = min(block_size, max(64, CACHE_FLOATS // max(1, lights.shape[0])))
         self._lights_t = lights.T.contiguous()
         self.view = -points / points.norm(dim=1, keepdim=True).clamp_min(torch.finfo(points.dtype).tiny ** 0.5)
-        # The unshadowed weights f_k / d_k are computed once and kept (N x K floats): every later
-        # evaluation then costs a shadow test and a matrix product instead of the distances again.
-        self.weights, self.bad = self._unshadowed_weights(falloff, min_distance)
         self._corners = lights[extreme_lights(lights)]
 
     @property
@@ -122,7 +147,7 @@ class LightField:
         """(n, K) shadow masks of pixels ``rows`` with normals (3, n) as 1.0 / 0.0 in the working
         dtype: p_k . n - X . n > 0. The comparison runs in place on the float product (a bool
         mask would need a type promotion in every later product)."""
-        points = self.points[rows]
+        points = _take_rows(self.points, rows)
         return torch.addmm(-(points * normal.T).sum(1, keepdim=True), normal.T, self._lights_t).gt_(0)
 
     def sees_all(self, index, normal: torch.Tensor) -> torch.Tensor:
@@ -172,23 +197,25 @@ class LightField:
         light (``whole``, their (n,) ``sees_all``), which skips the (n, K) shadow test for most
         pixels facing the display."""
         if bool(whole.all()):
-            return self.weights[rows]
-        return self._lit(rows, normal).mul_(self.weights[rows])
+            return _take_rows(self.weights, rows)
+        return self._lit(rows, normal).mul_(_take_rows(self.weights, rows))
 
-    def vector_blocks(self, index, normal: torch.Tensor, lighting: torch.Tensor):
+    def vector_blocks(self, index, normal: torch.Tensor, lighting: torch.Tensor, whole: torch.Tensor | None = None):
         """Effective lighting vectors with the attached shadows of the given normals, by blocks.
 
         Args:
             index: (n,) long pixel indices, or None for all N pixels.
             normal: (3, n) normals of those pixels.
             lighting: (K, 12 M) lighting matrix from ``lighting_matrix`` (used as a constant).
+            whole: optional (n,) ``sees_all(index, normal)``, if the caller has it already.
 
         Yields:
             (start, stop, vectors): the block covers entries start:stop of ``index``; vectors
             (M, 3, 3, stop - start) b[m, c, :, n] = sum_k E[m, k, c] f_k s_k l_k.
         """
         lighting = lighting.detach()
-        whole = self.sees_all(index, normal)
+        if whole is None:
+            whole = self.sees_all(index, normal)
         for start, stop, rows in self.block_rows(index):
             # The (pixels x lights) work runs in cache-sized sub-blocks, the per-pixel algebra on
             # the caller's larger blocks (fewer small operations).
@@ -198,8 +225,16 @@ class LightField:
                 sub_rows = slice(start + sub_start, start + sub_stop) if index is None else rows[sub_start:sub_stop]
                 block = slice(start + sub_start, start + sub_stop)
                 torch.mm(self.shadowed_weights(sub_rows, normal[:, block], whole[block]), lighting, out=summed[sub_start:sub_stop])
-            summed = summed.T.reshape(-1, 3, 4, stop - start)
-            yield start, stop, summed[:, :, :3] - self.points[rows].T[None, None] * summed[:, :, 3:]
+            # Pixels last and contiguous, as the per-pixel algebra wants them (on the mm's
+            # pixel-major output it runs several times slower).
+            summed = summed.T.contiguous().view(-1, 3, 4, stop - start)
+            yield start, stop, summed[:, :, :3] - _take_rows(self.points, rows).T[None, None] * summed[:, :, 3:]
+
+
+def _take_rows(values: torch.Tensor, rows) -> torch.Tensor:
+    """values[rows] for a slice or (n,) long indices; ``index_select`` gathers rows several times
+    faster than advanced indexing on CPU."""
+    return values[rows] if isinstance(rows, slice) else values.index_select(0, rows)
 
 
 PLANAR_TOLERANCE_M = 1e-7
@@ -316,8 +351,8 @@ class _ShadowedLighting(torch.autograd.Function):
     kept in the autograd graph."""
 
     @staticmethod
-    def forward(ctx, lighting, values, field, normal):
-        ctx.field, ctx.normal = field, normal
+    def forward(ctx, lighting, values, field, normal, whole):
+        ctx.field, ctx.normal, ctx.whole = field, normal, whole
         return values.clone()
 
     @staticmethod
@@ -328,14 +363,14 @@ class _ShadowedLighting(torch.autograd.Function):
         grad_summed = torch.cat([grad_vectors, -(grad_vectors * points_t).sum(2, keepdim=True)], dim=2)
         grad_summed = grad_summed.reshape(-1, field.num_pixels)  # (12 M, N)
         grad_lighting = torch.zeros((field.lights.shape[0], grad_summed.shape[0]), dtype=grad_vectors.dtype)
-        whole = field.sees_all(None, normal)
+        whole = field.sees_all(None, normal) if ctx.whole is None else ctx.whole
         for start, stop, rows in field.cache_rows(None):
             weight = field.shadowed_weights(rows, normal[:, start:stop], whole[start:stop])
             grad_lighting.addmm_(weight.T, grad_summed[:, start:stop].T)
-        return grad_lighting, None, None, None
+        return grad_lighting, None, None, None, None
 
 
-def differentiable_vectors(field: LightField, normal: torch.Tensor, lighting: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+def differentiable_vectors(field: LightField, normal: torch.Tensor, lighting: torch.Tensor, values: torch.Tensor, whole: torch.Tensor | None = None) -> torch.Tensor:
     """Lighting vectors of all N pixels as a differentiable function of the lighting matrix.
 
     Args:
@@ -344,11 +379,12 @@ def differentiable_vectors(field: LightField, normal: torch.Tensor, lighting: to
         lighting: (K, 12 M) lighting matrix carrying gradients.
         values: (M, 3, 3, N) the vectors of ``field.vector_blocks(None, normal, lighting)``,
             already computed.
+        whole: optional (N,) ``field.sees_all(None, normal)``, if the caller has it already.
 
     Returns:
         (M, 3, 3, N) equal to ``values``, with gradients to ``lighting``.
     """
-    return _ShadowedLighting.apply(lighting, values.detach(), field, normal.detach())
+    return _ShadowedLighting.apply(lighting, values.detach(), field, normal.detach(), whole)
 
 
 def _moments_forward(vectors, captures, weight):

@@ -8,12 +8,15 @@ sampled pixels costs a few matrix products and wide elementwise operations:
   unique entries, so that every per-pixel operation (moments, 3x3 solves by the adjugate, dot
   products) is a handful of elementwise operations over (.., N) rows instead of reductions over
   tiny trailing axes;
-- b for all pixels comes from ONE matrix product: with u_kn = s_kn f_kn / d_kn and
-  l_kn = (p_k - X_n) / d_kn, b[m, c, :, n] = sum_k E[m, k, c] u_kn p_k - X_n sum_k E[m, k, c] u_kn,
-  i.e. (M * 3 * 4, K) @ (K, N);
-- the shadow masks and the alternations run a fixed number of times, without gradient;
+- b for all pixels comes from matrix products on a ``LightField`` over the precomputed weights
+  ``light_reach``: with u_kn = s_kn f_kn / d_kn and l_kn = (p_k - X_n) / d_kn,
+  b[m, c, :, n] = sum_k E[m, k, c] u_kn p_k - X_n sum_k E[m, k, c] u_kn, i.e. (N, K) @ (K, 12 M)
+  in cache-sized blocks of pixels;
+- the shadow masks and the alternations run a fixed number of times, without gradient; a pixel
+  that sees every light keeps the b and moments of its all-ones mask between mask updates;
 - gradients come from ``grad_alternations`` alternations unrolled from the detached solution with
-  the final masks: a truncated implicit gradient, cheap in memory ((K, N) is kept once).
+  the final masks: a truncated implicit gradient, cheap in memory (the (N, K) weights are kept
+  once; the shadowed ones are formed again in the backward pass).
 With the default (small) iteration counts the values are not converged: on noise-free data they
 are typically within a degree or two of the full solver's, more on silhouettes. Training uses
 this, evaluation uses ``solve_ps`` (convergence, validity flags, restarts, exact implicit gradients).
@@ -25,12 +28,8 @@ from dataclasses import dataclass
 import torch
 
 from capture_sim.errors import InputError, check_array
-from reconstruct.lighting import emission_scale, extreme_lights, sees_all_lights
-from reconstruct.pixel_solve import symmetric_apply
-
-# Unique entries of a symmetric 3x3 matrix, in the order (00, 11, 22, 01, 02, 12).
-_ROWS = (0, 1, 2, 0, 0, 1)
-_COLS = (0, 1, 2, 1, 2, 2)
+from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, lighting_matrix, lighting_moments
+from reconstruct.pixel_solve import put_pixels, symmetric_apply, take_pixels
 
 
 @dataclass(frozen=True)
@@ -50,7 +49,7 @@ class UnrolledPSConfig:
     saturation_threshold: float = 0.999
     """Captures at or above this get zero weight."""
     chunk_pixels: int = 8192
-    """Pixels per chunk of the gradient-free iterations (a speed setting; results do not depend on it)."""
+    """Pixels per block of the (pixels x lights) work (a speed setting; results do not depend on it)."""
 
     def __post_init__(self):
         if self.shadow_iterations < 1 or self.alternations < 0 or self.grad_alternations < 0 or self.chunk_pixels < 1:
@@ -108,10 +107,44 @@ def _alternate(normal, albedo, moments, rhs_moments, damping, steps):
     return normal, albedo
 
 
-def _index_chunks(mask: torch.Tensor, size: int):
-    """Index tensors of at most ``size`` of the pixels ``mask`` (N,) bool marks."""
-    index = torch.nonzero(mask).squeeze(1)
-    return [index[start : start + size] for start in range(0, index.numel(), size)]
+class _ShadowState:
+    """Lighting vectors and moments under the current attached-shadow masks, without gradient.
+
+    A pixel whose mask was all ones at the last update and still is keeps its vectors and moments
+    (most pixels facing the display): only the others are formed again.
+
+    Attributes:
+        vectors: (M, 3, 3, N) effective lighting vectors b.
+        moments: (3, 6, N) per-channel B_c, ``lighting_moments`` layout.
+        rhs_moments: (3, 3, N) per-channel r_c.
+        whole: (N,) bool, the stored mask of the pixel is all ones.
+    """
+
+    def __init__(self, num_patterns: int, num_pixels: int, dtype: torch.dtype):
+        self.vectors = torch.empty((num_patterns, 3, 3, num_pixels), dtype=dtype)
+        self.moments = torch.empty((3, 6, num_pixels), dtype=dtype)
+        self.rhs_moments = torch.empty((3, 3, num_pixels), dtype=dtype)
+        self.whole = torch.zeros(num_pixels, dtype=torch.bool)
+
+    def update(self, field: LightField, normal, lighting, intensity, equation_weight) -> None:
+        """Form the masks of ``normal`` (3, N); ``lighting`` (K, 12 M), ``intensity`` and
+        ``equation_weight`` (M, 3, N) as ``solve_ps_unrolled`` has them."""
+        whole = field.sees_all(None, normal)
+        stale = ~(whole & self.whole)
+        if bool(stale.all()):  # every pixel: slices, no gathers
+            for start, stop, vectors in field.vector_blocks(None, normal, lighting, whole):
+                self.vectors[..., start:stop] = vectors
+            self.moments, self.rhs_moments, _ = lighting_moments(self.vectors, intensity, equation_weight)
+        else:
+            index = torch.nonzero(stale).squeeze(1)
+            vectors = self.vectors.new_empty((*self.vectors.shape[:-1], index.numel()))
+            for start, stop, block in field.vector_blocks(index, take_pixels(normal, index), lighting, whole[index]):
+                vectors[..., start:stop] = block
+            moments, rhs_moments, _ = lighting_moments(vectors, take_pixels(intensity, index), take_pixels(equation_weight, index))
+            put_pixels(self.vectors, index, vectors)
+            put_pixels(self.moments, index, moments)
+            put_pixels(self.rhs_moments, index, rhs_moments)
+        self.whole = whole
 
 
 def light_reach(points: torch.Tensor, lights: torch.Tensor, falloff) -> torch.Tensor:
@@ -177,87 +210,31 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
     if num_pixels == 0:
         empty = captures[0] * 0  # (0, 3), on the inputs' graph
         return empty, empty.clone()
-    points_t, lights = points.to(dtype).T.contiguous(), lights.to(dtype)  # (3, N), (K, 3)
+    points, lights = points.to(dtype), lights.to(dtype)
     if reach is None:
-        reach = light_reach(points.to(dtype), lights, falloff)
+        reach = light_reach(points, lights, falloff)
     # Shape only: reach is geometry from ``light_reach`` (finite by construction), and a finiteness
     # scan of its K x N values would cost more than a tenth of a training step.
     check_array("reach", reach, (lights.shape[0], num_pixels), finite=False)
-    reach = reach.to(dtype)
-    lights_h = torch.cat([lights, torch.ones_like(lights[:, :1])], dim=1)  # (K, 4)
+    # The light field keeps the weights pixel-major, as ``light_reach`` stores them (a view then).
+    field = LightField.from_weights(points, lights, reach.to(dtype).T.contiguous(), config.chunk_pixels)
     scale = emission_scale(emission)  # keeps the squared terms in range whatever the radiance units
-    table = ((emission / scale).permute(0, 2, 1)[:, :, None, :] * lights_h.T[None, None]).reshape(-1, lights.shape[0])  # (M*3*4, K)
-    intensity = captures.permute(0, 2, 1)  # (M, 3c, N)
+    lighting = lighting_matrix(emission / scale, lights)  # (K, 12 M)
+    intensity = captures.permute(0, 2, 1).contiguous()  # (M, 3c, N); pixels contiguous for the gathers
     equation_weight = (intensity < config.saturation_threshold).to(dtype)
-    view = -points_t / points_t.norm(dim=0, keepdim=True).clamp_min(1e-12)
-
-    def moments_for(lit_reach, table_values, values, part=slice(None)):
-        # Component by component via unbind (see ``_dot3``): b_i = S_i - X_i S_3, (M, 3c, n) each.
-        count = values.shape[-1]
-        mixed = (table_values @ lit_reach).reshape(num_patterns, 3, 4, count).unbind(2)
-        b = [mixed[i] - points_t[i, part] * mixed[3] for i in range(3)]
-        weight = equation_weight[..., part]
-        weighted = [weight * component for component in b]
-        moments = torch.stack([(weighted[i] * b[j]).sum(0) for i, j in zip(_ROWS, _COLS)], dim=1)  # (3c, 6, n)
-        rhs_moments = torch.stack([(component * values).sum(0) for component in weighted], dim=1)  # (3c, 3, n)
-        return moments, rhs_moments
-
-    pixel_major = reach.stride(0) == 1  # as ``light_reach`` stores it
-
-    def in_front(normal, part):
-        # l_k . n > 0  <=>  p_k . n > X . n: one (K, 3) @ (3, n) product, laid out like ``reach``
-        # (mixed layouts make the elementwise product several times slower); bool multiplies
-        # without a cast.
-        if pixel_major:
-            return ((normal.T @ lights.T) > _dot3(normal, points_t[:, part])[:, None]).T
-        return (lights @ normal) > _dot3(normal, points_t[:, part])
-
-    def columns(values, part):
-        # values[:, part]; pixel-major storage gathers whole rows (~10x faster than columns).
-        if isinstance(part, slice):
-            return values[:, part]
-        return values.T.index_select(0, part).T if pixel_major else values[:, part]
-
-    def masked_reach(part, normal, whole_mask: bool):
-        # (K, n) s_k f_k / d_k of the pixels ``part``; pixels known to see every light skip the test.
-        chosen = columns(reach, part)
-        return chosen if whole_mask else chosen * in_front(normal, part)
-
-    # Pixels that see every light (``sees_all_lights``, a test on the few hull lights) have the
-    # all-ones mask: their moments are formed once and their (K, n) shadow test is skipped.
-    corners = lights[extreme_lights(lights)]
-    table_values, values = table.detach(), intensity.detach()
     with torch.no_grad():
-        # The (K, n) shadow work and matrix products run in chunks of pixels that stay in cache;
-        # the per-pixel alternations run on all pixels at once (fewer, wider operations).
-        normal, albedo = view.clone(), torch.ones_like(view)
-        moments = torch.empty(3, 6, num_pixels, dtype=dtype)
-        rhs_moments = torch.empty(3, 3, num_pixels, dtype=dtype)
-        whole_moments = torch.zeros(num_pixels, dtype=torch.bool)  # moments hold the all-ones mask
+        normal, albedo = field.view.T.contiguous(), torch.ones(3, num_pixels, dtype=dtype)
+        state = _ShadowState(num_patterns, num_pixels, dtype)
         for _ in range(config.shadow_iterations):
-            whole = sees_all_lights(normal, points_t, corners)
-            pending = whole & ~whole_moments  # all-ones mask, not yet stored
-            if bool(pending.all()):  # every pixel, one kind: slices, no gathers
-                parts = [(slice(start, start + config.chunk_pixels), True) for start in range(0, num_pixels, config.chunk_pixels)]
-            else:
-                parts = [(part, True) for part in _index_chunks(pending, config.chunk_pixels)]
-                parts += [(part, False) for part in _index_chunks(~whole, config.chunk_pixels)]
-            for part, whole_mask in parts:
-                moments[..., part], rhs_moments[..., part] = moments_for(masked_reach(part, normal[:, part], whole_mask), table_values, values[..., part], part)
-            whole_moments = whole
-            normal, albedo = _alternate(normal, albedo, moments, rhs_moments, config.damping, config.alternations)
-        whole = sees_all_lights(normal, points_t, corners)
-        lit_reach = reach
-        if not bool(whole.all()):
-            lit_reach = reach.clone()  # keeps the layout
-            for part in _index_chunks(~whole, config.chunk_pixels):
-                masked = masked_reach(part, normal[:, part], False)
-                if pixel_major:
-                    lit_reach.T.index_copy_(0, part, masked.T)
-                else:
-                    lit_reach[:, part] = masked
-    moments, rhs_moments = moments_for(lit_reach, table, intensity)
+            state.update(field, normal, lighting, intensity.detach(), equation_weight)
+            normal, albedo = _alternate(normal, albedo, state.moments, state.rhs_moments, config.damping, config.alternations)
+        state.update(field, normal, lighting, intensity.detach(), equation_weight)
+    # Gradients: the final masks' vectors as a function of the lighting (the (pixels x lights)
+    # weights are re-formed in the backward pass, not kept), then the moments and alternations.
+    vectors = differentiable_vectors(field, normal, lighting, state.vectors, state.whole)
+    moments, rhs_moments, _ = lighting_moments(vectors, intensity, equation_weight)
     normal, albedo = _alternate(normal, albedo, moments, rhs_moments, config.damping, config.grad_alternations)
+    view = field.view.T
     # Return camera-facing normals: a back-facing solution (specular or unconverged pixels) is
     # flipped; its albedo is left as solved.
     facing = torch.where(_dot3(normal, view) < 0, -1.0, 1.0).to(dtype)

@@ -5,7 +5,7 @@ import torch
 
 from capture_sim.errors import InputError
 from capture_sim.rig import Falloff, load_rig
-from reconstruct.lighting import LightField, extreme_lights, sees_all_lights
+from reconstruct.lighting import LightField, extreme_lights, lighting_matrix, sees_all_lights
 
 
 def test_a_flat_grid_of_lights_has_its_four_corners_as_hull():
@@ -71,3 +71,27 @@ def test_bad_inputs_are_refused():
         extreme_lights(torch.tensor([[0.0, 0.0, math.nan]]))
     with pytest.raises(InputError):
         sees_all_lights(torch.zeros(3, 4), torch.zeros(3, 5), torch.zeros(2, 3))
+    field = LightField(torch.rand(4, 3) + torch.tensor([0.0, 0.0, 0.5]), load_rig().lights(), Falloff(), 1e-3, block_size=2)
+    with pytest.raises(InputError, match="contiguous"):
+        LightField.from_weights(field.points, field.lights, field.weights.T.contiguous().T, block_size=2)
+    with pytest.raises(InputError):
+        LightField.from_weights(field.points, field.lights, field.weights[:, :-1], block_size=2)
+
+
+def test_a_field_over_given_weights_gives_the_same_lighting_vectors():
+    lights = load_rig().lights(torch.float64)
+    generator = torch.Generator().manual_seed(2)
+    points = torch.stack([0.1 * torch.randn(300, generator=generator), 0.1 * torch.randn(300, generator=generator), 0.5 + 0.05 * torch.randn(300, generator=generator)], dim=1).double()
+    normal = torch.randn(3, 300, generator=generator, dtype=torch.float64)
+    normal[2] = -normal[2].abs()
+    normal = normal / normal.norm(dim=0)
+    lighting = lighting_matrix(torch.rand(2, lights.shape[0], 3, generator=generator, dtype=torch.float64), lights)
+    field = LightField(points, lights, Falloff(), 1e-3, block_size=64)
+    given = LightField.from_weights(points, lights, field.weights.clone(), block_size=100)
+    index = torch.arange(0, 300, 3)
+    for rows, part in ((None, slice(None)), (index, index)):
+        blocks = [vectors for _, _, vectors in given.vector_blocks(rows, normal[:, part], lighting)]
+        assert all(block.is_contiguous() for block in blocks)  # pixels last, as the per-pixel algebra wants
+        expected = torch.cat([vectors for _, _, vectors in field.vector_blocks(rows, normal[:, part], lighting)], dim=-1)
+        assert expected.shape == (2, 3, 3, 300 if rows is None else 100)
+        torch.testing.assert_close(torch.cat(blocks, dim=-1), expected)

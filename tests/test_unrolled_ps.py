@@ -4,10 +4,10 @@ import torch
 from capture_sim.display import display_emission
 from capture_sim.rig import load_rig
 from capture_sim.synth import lambertian_sphere
-from reconstruct import unrolled_ps as unrolled_module
-from reconstruct.lighting import extreme_lights
+from reconstruct import lighting as lighting_module
+from reconstruct.lighting import SYMMETRIC_PAIRS, extreme_lights
 from reconstruct.metrics import angular_error_deg
-from reconstruct.unrolled_ps import _COLS, _ROWS, UnrolledPSConfig, _symmetric_direction, light_reach, solve_ps_unrolled
+from reconstruct.unrolled_ps import UnrolledPSConfig, _symmetric_direction, light_reach, solve_ps_unrolled
 from train.scene_pixels import scene_pixels
 
 
@@ -26,7 +26,8 @@ def test_adjugate_solve_matches_linalg():
     factor = torch.randn(50, 3, 3, dtype=torch.float64, generator=generator)
     system = factor @ factor.transpose(1, 2) + 0.1 * torch.eye(3, dtype=torch.float64)
     rhs = torch.randn(50, 3, dtype=torch.float64, generator=generator)
-    unique = system[:, _ROWS, _COLS].T  # (6, N): the solver's storage of symmetric systems
+    rows, cols = zip(*SYMMETRIC_PAIRS)
+    unique = system[:, rows, cols].T  # (6, N): the solver's storage of symmetric systems
     torch.testing.assert_close(_symmetric_direction(unique, rhs.T).T, torch.linalg.solve(system, rhs))
     # Only |det| is used, so a determinant that rounds negative cannot flip the direction: the
     # adjugate of -S equals that of S, and so does the result.
@@ -110,9 +111,9 @@ def test_pixels_that_see_every_light_skip_the_shadow_test_without_changing_the_s
     points = pixels.points.double()
     config = UnrolledPSConfig(chunk_pixels=97)
     fast, fast_albedo = solve_ps_unrolled(captures, emission, points, lights, falloff, config)
-    whole = unrolled_module.sees_all_lights(fast.T, points.T, lights[extreme_lights(lights)])
+    whole = lighting_module.sees_all_lights(fast.T, points.T, lights[extreme_lights(lights)])
     assert 0.2 < float(whole.double().mean()) < 0.95
-    monkeypatch.setattr(unrolled_module, "sees_all_lights", lambda normal, *_: torch.zeros(normal.shape[1], dtype=torch.bool))
+    monkeypatch.setattr(lighting_module, "sees_all_lights", lambda normal, *_: torch.zeros(normal.shape[1], dtype=torch.bool))
     full, full_albedo = solve_ps_unrolled(captures, emission, points, lights, falloff, config)
     torch.testing.assert_close(fast, full, rtol=0, atol=1e-9)
     torch.testing.assert_close(fast_albedo, full_albedo, rtol=0, atol=1e-9)
