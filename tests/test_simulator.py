@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -60,6 +62,10 @@ def test_auto_exposure_puts_percentile_at_target():
     exposure = auto_exposure(radiance)
     exposed = (exposure * radiance).reshape(-1)
     assert abs(float(torch.quantile(exposed, 0.999)) - 0.9) < 2e-3
+    values = radiance.reshape(-1)
+    for percentile in (99.9, 50.0, 100.0):  # exactly the rank statistic, top and middle included
+        rank = math.ceil(percentile / 100 * values.numel())
+        assert auto_exposure(radiance, percentile) == 0.9 / float(torch.kthvalue(values, rank).values)
     assert auto_exposure(torch.zeros(2, 10, 3)) == 1.0
 
 
