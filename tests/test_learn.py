@@ -85,6 +85,19 @@ def test_normal_loss_is_finite_at_exact_match():
     assert float(loss.detach()) < 1e-2 and torch.isfinite(normal.grad).all()
 
 
+def test_capped_angular_loss_ignores_only_pixels_beyond_the_cap():
+    truth = torch.tensor([[0.0, 0.0, -1.0]] * 3, dtype=torch.float64)
+    tilt = torch.tensor([10.0, 30.0, 60.0], dtype=torch.float64).deg2rad()  # the last is beyond 40 deg
+    estimate = torch.stack([torch.sin(tilt), torch.zeros(3, dtype=torch.float64), -torch.cos(tilt)], dim=1).requires_grad_()
+    capped = normal_loss(estimate, truth, "capped_angular", 40.0)
+    torch.testing.assert_close(capped, torch.tensor([10.0, 30.0, 40.0], dtype=torch.float64).deg2rad().mean())
+    capped.backward()
+    assert estimate.grad[:2].abs().sum(1).gt(0).all() and not estimate.grad[2].any()
+    torch.testing.assert_close(normal_loss(estimate, truth, "capped_angular"), normal_loss(estimate, truth, "angular"))  # no cap by default
+    with pytest.raises(InputError, match="angle_cap_deg"):
+        TrainConfig(angle_cap_deg=0.0)
+
+
 def test_damaged_or_foreign_checkpoints_are_refused(tmp_path, scene_dirs):
     config = _config(scene_dirs, steps=2, val_every=0)
     train_patterns(config, tmp_path / "a.npz", progress=False)

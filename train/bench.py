@@ -289,7 +289,7 @@ def bench_train(num_patterns: int = 4, sampled_pixels: int = 100_000, repeats: i
         patterns = logits_to_patterns(logits)
         capture = capture_scene(scene, patterns, 1.0, scene_exposure(exposure_pixels, patterns), generator, part)
         normal, _ = solve_ps_unrolled(capture.captures, capture.emission, scene.points[part], scene.lights(), scene.rig.falloff, reach=sampler.reach[:, part])
-        normal_loss(normal, scene.normal[part], config.loss).backward()
+        normal_loss(normal, scene.normal[part], config.loss, config.angle_cap_deg).backward()
 
     step()
     reset_peak_rss()

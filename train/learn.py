@@ -38,7 +38,7 @@ EXPOSURE_PIXELS = 65536
 """Auto exposure during learning reads at most this many of a scene's pixels (a fixed uniform random
 sample; all of them in smaller scenes): the 99.9th percentile of 65536 x M x 3 values is a stable
 estimate, and at 512 x 612 it saves most of the full-frame contraction every step."""
-LOSSES = ("angular", "cosine")
+LOSSES = ("capped_angular", "angular", "cosine")
 SOLVERS = ("full", "unrolled")
 
 
@@ -67,8 +67,16 @@ class TrainConfig:
     """Pixels sampled from every training scene at each step."""
     noise_scale: float = 1.0
     """Multiplier of the rig's noise variances during training (0 = noise-free)."""
-    loss: str = "angular"
-    """'angular' (mean angle in radians) or 'cosine' (mean 1 - cos)."""
+    loss: str = "capped_angular"
+    """'capped_angular' (mean angle in radians, each pixel's at most ``angle_cap_deg``), 'angular'
+    (mean angle) or 'cosine' (mean 1 - cos)."""
+    angle_cap_deg: float = 40.0
+    """Per-pixel cap of the 'capped_angular' loss, degrees. A pixel beyond it (a specular highlight
+    or cast shadow the Lambertian solver cannot fit whatever the patterns) adds a constant and no
+    gradient, so learning spends the patterns on pixels it can fix. On the demo scenes it learned
+    M = 2 patterns with held-out MAE 10.20 / 10.12 / 10.09 deg (seeds 0 / 1 / 2) against 10.41 /
+    10.54 / 10.79 uncapped, and M = 4 ones as good (9.60 / 9.51 against 9.58 / 9.53); a 30 deg
+    cap learned as 40 (10.20 at M = 2, seed 0)."""
     scenes: tuple[str, ...] = ()
     """Training scene files or folders; empty = the default synthetic training split."""
     val_scenes: tuple[str, ...] = ()
@@ -105,6 +113,8 @@ class TrainConfig:
             raise InputError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if self.loss not in LOSSES:
             raise InputError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
+        if not self.angle_cap_deg > 0:
+            raise InputError(f"angle_cap_deg must be > 0 (inf for no cap), got {self.angle_cap_deg!r}")
         if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
             raise InputError(f"learning_rate must be a finite number > 0, got {self.learning_rate!r}")
         if not 0 < self.final_lr_fraction <= 1:
@@ -142,13 +152,17 @@ def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
     return torch.as_tensor(values)
 
 
-def normal_loss(estimate: torch.Tensor, truth: torch.Tensor, kind: str) -> torch.Tensor:
-    """Mean angular (radians) or cosine (1 - cos) error between (N, 3) unit normals."""
+def normal_loss(estimate: torch.Tensor, truth: torch.Tensor, kind: str, angle_cap_deg: float = math.inf) -> torch.Tensor:
+    """Mean error between (N, 3) unit normals: 'angular' (radians), 'capped_angular' (radians,
+    each pixel's angle at most ``angle_cap_deg`` degrees) or 'cosine' (1 - cos); a 0-d tensor."""
     cosine = (estimate * truth).sum(-1)
     if kind == "cosine":
         return (1.0 - cosine).mean()
     # acos has an infinite slope at 1: clamp just inside so that exact pixels give finite gradients.
-    return torch.acos(cosine.clamp(-1.0 + 1e-6, 1.0 - 1e-6)).mean()
+    angle = torch.acos(cosine.clamp(-1.0 + 1e-6, 1.0 - 1e-6))
+    if kind == "capped_angular":
+        angle = angle.clamp_max(math.radians(angle_cap_deg))
+    return angle.mean()
 
 
 def step_generator(seed: int, step: int) -> torch.Generator:
@@ -178,7 +192,7 @@ def training_loss(logits: torch.Tensor, scenes: list[ShuffledPixels], config: Tr
     losses = []
     for (sampler, part, capture), (normal, albedo) in zip(draws, reconstruct_draws(draws, config.solver, ps_config)):
         pixels = sampler.scene
-        loss = normal_loss(normal, pixels.normal[part], config.loss)
+        loss = normal_loss(normal, pixels.normal[part], config.loss, config.angle_cap_deg)
         if config.rerender_weight > 0:
             loss = loss + config.rerender_weight * rerender_loss(normal, albedo, capture, pixels, part)
         losses.append(loss)
