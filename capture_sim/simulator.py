@@ -136,8 +136,9 @@ def auto_exposure(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERC
         return 1.0  # no pixels: nothing to expose for
     rank = min(values.numel(), max(1, int(np.ceil(percentile / 100.0 * values.numel()))))
     # The rank-th smallest is the smallest of the top numel - rank + 1: topk finds those few
-    # values ~3x faster than kthvalue's full selection (a learning step asks every time).
-    level = float(torch.topk(values, values.numel() - rank + 1, sorted=False).values.min())
+    # values ~3x faster than kthvalue's full selection (a learning step asks every time); the
+    # kthvalue among them orders NaN as kthvalue over all values would.
+    level = float(torch.topk(values, values.numel() - rank + 1, sorted=False).values.kthvalue(1).values)
     # Any positive normal number works: radiance may come in any units (an OLAT stack scaled by
     # 1e-20 is still a scene); below the dtype's smallest normal the gain would overflow it.
     return target / level if level >= torch.finfo(values.dtype).tiny else 1.0

@@ -93,6 +93,8 @@ class LightField:
         check_array("weights", weights, (points.shape[0], lights.shape[0]), finite=False)
         if not weights.is_contiguous():
             raise InputError("LightField.from_weights needs contiguous (N, K) weights (pixel-major)")
+        if weights.dtype != points.dtype:
+            raise InputError(f"LightField.from_weights: weights are {weights.dtype} but points are {points.dtype}")
         field = cls.__new__(cls)
         field._set_geometry(points, lights, block_size)
         field.weights, field.bad = weights, torch.zeros(points.shape[0], dtype=torch.bool)
@@ -156,7 +158,7 @@ class LightField:
         claims a shadowed light is lit). Runs in chunks whose (hull lights x pixels) product
         stays near ``SEES_ALL_FLOATS`` entries: per cache block, the calls' overhead would cost
         more than the test; in one piece, the product of a full frame would take ~100 MB."""
-        points = self.points.T if index is None else self.points[index].T
+        points = self.points.T if index is None else _take_rows(self.points, index).T
         count = normal.shape[1]
         step = max(1, SEES_ALL_FLOATS // self._corners.shape[0])
         if count <= step:

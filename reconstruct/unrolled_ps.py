@@ -37,7 +37,7 @@ class UnrolledPSConfig:
     """Iteration counts of ``solve_ps_unrolled``.
 
     The defaults are the cheapest counts found that learn as well as more iterations: on the
-    demo's training set, (2, 3, 2) learned patterns with held-out MAE 10.41 / 10.54 deg (M = 2,
+    demo's training set with the uncapped angular loss, (2, 3, 2) learned patterns with held-out MAE 10.41 / 10.54 deg (M = 2,
     seeds 0 / 1) and 9.58 / 9.53 (M = 4), against 10.78 / 11.02 and 9.62 / 9.56 with (3, 5, 3),
     in 0.72x the step time (`displex train` runs on the demo scenes, `displex evaluate` MAE)."""
 
@@ -54,7 +54,8 @@ class UnrolledPSConfig:
     saturation_threshold: float = 0.999
     """Captures at or above this get zero weight."""
     chunk_pixels: int = 8192
-    """Pixels per block of the (pixels x lights) work (a speed setting; results do not depend on it)."""
+    """Pixels per block of the per-pixel algebra on lighting vectors (the (pixels x lights) products
+    run in cache-sized sub-blocks of it). A speed setting: results change only by rounding."""
 
     def __post_init__(self):
         if self.shadow_iterations < 1 or self.alternations < 0 or self.grad_alternations < 0 or self.chunk_pixels < 1:

@@ -93,9 +93,11 @@ def test_capped_angular_loss_ignores_only_pixels_beyond_the_cap():
     torch.testing.assert_close(capped, torch.tensor([10.0, 30.0, 40.0], dtype=torch.float64).deg2rad().mean())
     capped.backward()
     assert estimate.grad[:2].abs().sum(1).gt(0).all() and not estimate.grad[2].any()
-    torch.testing.assert_close(normal_loss(estimate, truth, "capped_angular"), normal_loss(estimate, truth, "angular"))  # no cap by default
+    torch.testing.assert_close(normal_loss(estimate, truth, "capped_angular"), capped)  # the default cap is TrainConfig's
+    torch.testing.assert_close(normal_loss(estimate, truth, "capped_angular", math.inf), normal_loss(estimate, truth, "angular"))
     with pytest.raises(InputError, match="angle_cap_deg"):
         TrainConfig(angle_cap_deg=0.0)
+    TrainConfig(loss="angular", angle_cap_deg=0.0)  # unused by the other losses
 
 
 def test_damaged_or_foreign_checkpoints_are_refused(tmp_path, scene_dirs):

@@ -66,6 +66,8 @@ def test_auto_exposure_puts_percentile_at_target():
     for percentile in (99.9, 50.0, 100.0):  # exactly the rank statistic, top and middle included
         rank = math.ceil(percentile / 100 * values.numel())
         assert auto_exposure(radiance, percentile) == 0.9 / float(torch.kthvalue(values, rank).values)
+    with_nan = torch.tensor([1.0, math.nan, 2.0, 3.0])  # NaN orders last, as in kthvalue
+    assert auto_exposure(with_nan, 50.0) == 0.9 / 2.0
     assert auto_exposure(torch.zeros(2, 10, 3)) == 1.0
 
 

@@ -110,10 +110,20 @@ def test_pixels_that_see_every_light_skip_the_shadow_test_without_changing_the_s
     lights, falloff = pixels.lights().double(), pixels.rig.falloff
     points = pixels.points.double()
     config = UnrolledPSConfig(chunk_pixels=97)
-    fast, fast_albedo = solve_ps_unrolled(captures, emission, points, lights, falloff, config)
-    whole = lighting_module.sees_all_lights(fast.T, points.T, lights[extreme_lights(lights)])
+
+    def solve_and_differentiate(part=slice(None)):
+        inputs = (captures[:, part].clone().requires_grad_(), emission.clone().requires_grad_())
+        normal, albedo = solve_ps_unrolled(*inputs, points[part], lights, falloff, config)
+        (normal[:, 0].sum() + albedo.sum()).backward()
+        return normal.detach(), albedo.detach(), *(value.grad for value in inputs)
+
+    fast = solve_and_differentiate()
+    whole = lighting_module.sees_all_lights(fast[0].T, points.T, lights[extreme_lights(lights)])
     assert 0.2 < float(whole.double().mean()) < 0.95
+    centre = torch.nonzero(whole).squeeze(1)  # every update after the first keeps all of them
+    fast_centre = solve_and_differentiate(centre)
+    # Without the test every pixel takes the full shadow test at every update (the all-stale path).
     monkeypatch.setattr(lighting_module, "sees_all_lights", lambda normal, *_: torch.zeros(normal.shape[1], dtype=torch.bool))
-    full, full_albedo = solve_ps_unrolled(captures, emission, points, lights, falloff, config)
-    torch.testing.assert_close(fast, full, rtol=0, atol=1e-9)
-    torch.testing.assert_close(fast_albedo, full_albedo, rtol=0, atol=1e-9)
+    full = solve_and_differentiate()
+    for fast_value, full_value in zip(fast + fast_centre, full + solve_and_differentiate(centre)):
+        torch.testing.assert_close(fast_value, full_value, rtol=1e-9, atol=1e-9)

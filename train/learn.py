@@ -5,7 +5,8 @@ training scene, simulates their captures (display model, noise by reparameterisa
 quantisation; auto exposure per scene recomputed without gradient over a fixed random sample of
 at most ``EXPOSURE_PIXELS`` of its pixels, i.e. every pixel of scenes up to that size), reconstructs normals with the
 analytic photometric stereo (the fixed-iteration ``solve_ps_unrolled``; validation uses the full
-solver), and descends the mean angular error with Adam under a cosine schedule.
+solver), and descends the mean angular error (by default with each pixel's angle capped, see
+``TrainConfig.angle_cap_deg``) with Adam under a cosine schedule.
 Every random draw of step s comes from a generator seeded by (seed, s), so a run resumed from a
 checkpoint continues exactly as an uninterrupted one.
 """
@@ -39,6 +40,7 @@ EXPOSURE_PIXELS = 65536
 sample; all of them in smaller scenes): the 99.9th percentile of 65536 x M x 3 values is a stable
 estimate, and at 512 x 612 it saves most of the full-frame contraction every step."""
 LOSSES = ("capped_angular", "angular", "cosine")
+DEFAULT_ANGLE_CAP_DEG = 40.0
 SOLVERS = ("full", "unrolled")
 
 
@@ -70,13 +72,14 @@ class TrainConfig:
     loss: str = "capped_angular"
     """'capped_angular' (mean angle in radians, each pixel's at most ``angle_cap_deg``), 'angular'
     (mean angle) or 'cosine' (mean 1 - cos)."""
-    angle_cap_deg: float = 40.0
+    angle_cap_deg: float = DEFAULT_ANGLE_CAP_DEG
     """Per-pixel cap of the 'capped_angular' loss, degrees. A pixel beyond it (a specular highlight
     or cast shadow the Lambertian solver cannot fit whatever the patterns) adds a constant and no
     gradient, so learning spends the patterns on pixels it can fix. On the demo scenes it learned
     M = 2 patterns with held-out MAE 10.20 / 10.12 / 10.09 deg (seeds 0 / 1 / 2) against 10.41 /
     10.54 / 10.79 uncapped, and M = 4 ones as good (9.60 / 9.51 against 9.58 / 9.53); a 30 deg
-    cap learned as 40 (10.20 at M = 2, seed 0)."""
+    cap learned as 40 (10.20 at M = 2, seed 0). Caps below ~0.08 deg (the loss's clamp of the
+    cosine) give no gradient at all."""
     scenes: tuple[str, ...] = ()
     """Training scene files or folders; empty = the default synthetic training split."""
     val_scenes: tuple[str, ...] = ()
@@ -113,7 +116,7 @@ class TrainConfig:
             raise InputError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if self.loss not in LOSSES:
             raise InputError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
-        if not self.angle_cap_deg > 0:
+        if self.loss == "capped_angular" and not self.angle_cap_deg > 0:
             raise InputError(f"angle_cap_deg must be > 0 (inf for no cap), got {self.angle_cap_deg!r}")
         if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
             raise InputError(f"learning_rate must be a finite number > 0, got {self.learning_rate!r}")
@@ -152,7 +155,7 @@ def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
     return torch.as_tensor(values)
 
 
-def normal_loss(estimate: torch.Tensor, truth: torch.Tensor, kind: str, angle_cap_deg: float = math.inf) -> torch.Tensor:
+def normal_loss(estimate: torch.Tensor, truth: torch.Tensor, kind: str, angle_cap_deg: float = DEFAULT_ANGLE_CAP_DEG) -> torch.Tensor:
     """Mean error between (N, 3) unit normals: 'angular' (radians), 'capped_angular' (radians,
     each pixel's angle at most ``angle_cap_deg`` degrees) or 'cosine' (1 - cos); a 0-d tensor."""
     cosine = (estimate * truth).sum(-1)

@@ -8,7 +8,7 @@ It is deterministic: every scene keeps one fixed subset of pixels (``pixels_per_
 fixed noise draw (generator seeded with ``config.seed * 1000 + scene index``) for every
 evaluation, so NLopt compares patterns, not noise draws. Gradient-based algorithms (LD_*) get the
 gradient of exactly this value by autograd (``solve_ps`` has exact implicit gradients); the angle
-is acos of the clamped cosine, as in training (``train.learn.normal_loss``), so the value is a
+is acos of the clamped cosine, as in training's uncapped 'angular' loss (``train.learn.normal_loss``), so the value is a
 differentiable surrogate of the MAE that differs from it by < 0.1 degree.
 
 Search generates patterns at a low edge sharpness (4 per cell instead of the families' 40): at 40,
