@@ -37,9 +37,10 @@ class UnrolledPSConfig:
     """Iteration counts of ``solve_ps_unrolled``.
 
     The defaults are the cheapest counts found that learn as well as more iterations: on the
-    demo's training set with the uncapped angular loss, (2, 3, 2) learned patterns with held-out MAE 10.41 / 10.54 deg (M = 2,
-    seeds 0 / 1) and 9.58 / 9.53 (M = 4), against 10.78 / 11.02 and 9.62 / 9.56 with (3, 5, 3),
-    in 0.72x the step time (`displex train` runs on the demo scenes, `displex evaluate` MAE)."""
+    demo's training set with the uncapped angular loss, (2, 3, 2) learned patterns with held-out
+    MAE 10.41 / 10.54 deg (M = 2, seeds 0 / 1) and 9.58 / 9.53 (M = 4), against 10.78 / 11.02 and
+    9.62 / 9.56 with (3, 5, 3), in 0.72x the step time (`displex train` runs on the demo scenes,
+    `displex evaluate` MAE)."""
 
     shadow_iterations: int = 2
     """Attached-shadow mask updates (each followed by ``alternations`` alternations)."""
@@ -117,19 +118,18 @@ class _ShadowState:
     """Lighting vectors and moments under the current attached-shadow masks, without gradient.
 
     A pixel whose mask was all ones at the last update and still is keeps its vectors and moments
-    (most pixels facing the display): only the others are formed again.
+    (most pixels facing the display): only the others are formed again. The first update forms
+    every pixel.
 
-    Attributes:
+    Attributes (None before the first update):
         vectors: (M, 3, 3, N) effective lighting vectors b.
         moments: (3, 6, N) per-channel B_c, ``lighting_moments`` layout.
         rhs_moments: (3, 3, N) per-channel r_c.
         whole: (N,) bool, the stored mask of the pixel is all ones.
     """
 
-    def __init__(self, num_patterns: int, num_pixels: int, dtype: torch.dtype):
-        self.vectors = torch.empty((num_patterns, 3, 3, num_pixels), dtype=dtype)
-        self.moments = torch.empty((3, 6, num_pixels), dtype=dtype)
-        self.rhs_moments = torch.empty((3, 3, num_pixels), dtype=dtype)
+    def __init__(self, num_pixels: int):
+        self.vectors = self.moments = self.rhs_moments = None
         self.whole = torch.zeros(num_pixels, dtype=torch.bool)
 
     def update(self, field: LightField, normal, lighting, intensity, equation_weight) -> None:
@@ -137,20 +137,21 @@ class _ShadowState:
         ``equation_weight`` (M, 3, N) as ``solve_ps_unrolled`` has them."""
         whole = field.sees_all(None, normal)
         stale = ~(whole & self.whole)
-        if bool(stale.all()):  # every pixel: slices, no gathers
-            for start, stop, vectors in field.vector_blocks(None, normal, lighting, whole):
-                self.vectors[..., start:stop] = vectors
-            self.moments, self.rhs_moments, _ = lighting_moments(self.vectors, intensity, equation_weight)
-        else:
-            index = torch.nonzero(stale).squeeze(1)
-            vectors = self.vectors.new_empty((*self.vectors.shape[:-1], index.numel()))
-            for start, stop, block in field.vector_blocks(index, take_pixels(normal, index), lighting, whole[index]):
-                vectors[..., start:stop] = block
-            moments, rhs_moments, _ = lighting_moments(vectors, take_pixels(intensity, index), take_pixels(equation_weight, index))
-            put_pixels(self.vectors, index, vectors)
-            put_pixels(self.moments, index, moments)
-            put_pixels(self.rhs_moments, index, rhs_moments)
+        index = None if bool(stale.all()) else torch.nonzero(stale).squeeze(1)  # None: every pixel, no gathers
         self.whole = whole
+
+        def pick(values):
+            return values if index is None else take_pixels(values, index)
+
+        vectors = normal.new_empty((lighting.shape[1] // 12, 3, 3, stale.shape[0] if index is None else index.numel()))
+        for start, stop, block in field.vector_blocks(index, pick(normal), lighting, pick(whole)):
+            vectors[..., start:stop] = block
+        moments, rhs_moments, _ = lighting_moments(vectors, pick(intensity), pick(equation_weight))
+        if index is None:
+            self.vectors, self.moments, self.rhs_moments = vectors, moments, rhs_moments
+        else:
+            for stored, fresh in ((self.vectors, vectors), (self.moments, moments), (self.rhs_moments, rhs_moments)):
+                put_pixels(stored, index, fresh)
 
 
 def light_reach(points: torch.Tensor, lights: torch.Tensor, falloff) -> torch.Tensor:
@@ -209,7 +210,7 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
         raise InputError("captures and emission must be floating-point tensors")
     if 0 in (captures.shape[0], lights.shape[0]):
         raise InputError(f"need at least one pattern and one light, got M = {captures.shape[0]}, K = {lights.shape[0]}")
-    num_patterns, num_pixels = captures.shape[0], captures.shape[1]
+    num_pixels = captures.shape[1]
     # One working dtype, at least float32 (float16 moments overflow).
     dtype = torch.promote_types(torch.promote_types(captures.dtype, emission.dtype), torch.float32)
     captures, emission = captures.to(dtype), emission.to(dtype)
@@ -230,11 +231,11 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
     equation_weight = (intensity < config.saturation_threshold).to(dtype)
     with torch.no_grad():
         normal, albedo = field.view.T.contiguous(), torch.ones(3, num_pixels, dtype=dtype)
-        state = _ShadowState(num_patterns, num_pixels, dtype)
+        state = _ShadowState(num_pixels)
         for _ in range(config.shadow_iterations):
-            state.update(field, normal, lighting, intensity.detach(), equation_weight)
+            state.update(field, normal, lighting, intensity, equation_weight)
             normal, albedo = _alternate(normal, albedo, state.moments, state.rhs_moments, config.damping, config.alternations)
-        state.update(field, normal, lighting, intensity.detach(), equation_weight)
+        state.update(field, normal, lighting, intensity, equation_weight)
     # Gradients: the final masks' vectors as a function of the lighting (the (pixels x lights)
     # weights are re-formed in the backward pass, not kept), then the moments and alternations.
     vectors = differentiable_vectors(field, normal, lighting, state.vectors, state.whole)

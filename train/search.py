@@ -8,8 +8,8 @@ It is deterministic: every scene keeps one fixed subset of pixels (``pixels_per_
 fixed noise draw (generator seeded with ``config.seed * 1000 + scene index``) for every
 evaluation, so NLopt compares patterns, not noise draws. Gradient-based algorithms (LD_*) get the
 gradient of exactly this value by autograd (``solve_ps`` has exact implicit gradients); the angle
-is acos of the clamped cosine, as in training's uncapped 'angular' loss (``train.learn.normal_loss``), so the value is a
-differentiable surrogate of the MAE that differs from it by < 0.1 degree.
+is acos of the clamped cosine, as in training's uncapped 'angular' loss (``train.learn.normal_loss``),
+so the value is a differentiable surrogate of the MAE that differs from it by < 0.1 degree.
 
 Search generates patterns at a low edge sharpness (4 per cell instead of the families' 40): at 40,
 split and block edges are binary and their positions get no gradient, and a derivative-free search
