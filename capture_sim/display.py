@@ -27,9 +27,13 @@ def display_emission(patterns: torch.Tensor, backlight: torch.Tensor, gamma: flo
         (M, K, 3) emitted intensity L in light order k = r * C + c, differentiable in ``patterns``.
     """
     check_array("patterns", patterns, ("...", 3), value_range=(0.0, 1.0))
+    if len(patterns.shape) not in (3, 4):
+        raise InputError(f"patterns: expected shape (M, R, C, 3) or (M, K, 3), got {tuple(patterns.shape)}")
     if not (0 < gamma < math.inf and 0 < scale < math.inf):
         raise InputError(f"display gamma and scale must be positive and finite, got {gamma!r}, {scale!r}")
     flat = torch.as_tensor(patterns).reshape(patterns.shape[0], math.prod(patterns.shape[1:-1]), 3)  # M = 0 too
     light_backlight = torch.as_tensor(backlight, dtype=flat.dtype).reshape(1, -1, 1)
     check_array("backlight", light_backlight, (1, flat.shape[1], 1), value_range=(0.0, 1.0))
-    return scale * (flat + light_backlight) ** gamma
+    # The floor keeps the gradient finite at a black, backlight-free superpixel when gamma < 1
+    # (d/dx x^gamma is infinite at 0); the value it adds, tiny^gamma, is below any capture's noise.
+    return scale * (flat + light_backlight).clamp_min(torch.finfo(flat.dtype).tiny) ** gamma

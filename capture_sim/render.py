@@ -43,8 +43,18 @@ def render_olat(
         fresnel: ``"constant"`` or ``"schlick"`` (see ``capture_sim.brdf``).
 
     Returns:
-        diffuse, specular: (K, N, 3) radiance per unit display intensity.
+        diffuse, specular: (K, N, 3) radiance per unit display intensity, in the points' dtype
+        (float16 and bfloat16 inputs are rendered in float32, whose small denominators they cannot
+        hold, and the result is clamped to their range).
     """
+    if points.dtype in (torch.float16, torch.bfloat16):
+        def wide(value):
+            return value.float() if isinstance(value, torch.Tensor) and value.is_floating_point() else value
+
+        rendered = render_olat(*(wide(value) for value in (points, normals, lights, weights, diffuse_albedo, specular_albedo, roughness)),
+                               falloff, wide(visibility), fresnel)
+        limit = torch.finfo(points.dtype).max
+        return tuple(image.clamp(max=limit).to(points.dtype) for image in rendered)
     light_dirs, distance = light_geometry(points, lights)  # (N, K, 3), (N, K)
     if getattr(falloff, "kind", "inverse_square") != "inverse_square":
         falloff.check(distance)  # DESIGN section 3: a fitted falloff can be negative or infinite

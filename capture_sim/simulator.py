@@ -23,6 +23,7 @@ recomputed every step and treated as a constant).
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,17 +128,23 @@ def auto_exposure(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERC
 
     Returns:
         e > 0 as a Python float (1.0 when the scene is completely dark, so nothing divides by zero).
+
+    Raises:
+        InputError: the radiance contains NaN (it would be ordered as the brightest value).
     """
     # The rank statistic is exact in the input's own dtype (converting to float64 would only copy).
     if not (0 < percentile <= 100 and 0 < target < math.inf):
         raise InputError(f"auto exposure needs a percentile in (0, 100] and a positive target, got {percentile!r}, {target!r}")
-    values = radiance.detach().reshape(-1)
+    values = torch.as_tensor(radiance).detach().reshape(-1)
+    if not values.is_floating_point():
+        values = values.to(torch.float32)
     if values.numel() == 0:
         return 1.0  # no pixels: nothing to expose for
+    if bool(torch.isnan(values).any()):
+        raise InputError("auto exposure: the noise-free radiance contains NaN")
     rank = min(values.numel(), max(1, int(np.ceil(percentile / 100.0 * values.numel()))))
     # The rank-th smallest is the smallest of the top numel - rank + 1: topk finds those few
-    # values ~3x faster than kthvalue's full selection (a learning step asks every time); the
-    # kthvalue among them orders NaN as kthvalue over all values would.
+    # values ~3x faster than kthvalue's full selection (a learning step asks every time).
     level = float(torch.topk(values, values.numel() - rank + 1, sorted=False).values.kthvalue(1).values)
     # Any positive normal number works: radiance may come in any units (an OLAT stack scaled by
     # 1e-20 is still a scene); below the dtype's smallest normal the gain would overflow it.
@@ -165,7 +172,9 @@ class _SaturatingClip(torch.autograd.Function):
 class _StraightThroughRound(torch.autograd.Function):
     @staticmethod
     def forward(ctx, signal, levels):
-        return torch.round(signal * levels) / levels
+        # In at least float32: 2^16 - 1 levels and more overflow float16 (max 65504).
+        work = signal.to(torch.promote_types(signal.dtype, torch.float32))
+        return (torch.round(work * levels) / levels).to(signal.dtype)
 
     @staticmethod
     def backward(ctx, grad_output):
@@ -195,7 +204,7 @@ def sensor(
         InputError: a bit depth outside 1..24 or a clip sharpness that is not a positive number.
         Values are not scanned (a hot path of learning; ``simulate`` checks its inputs).
     """
-    if bit_depth is not None and not (isinstance(bit_depth, int) and 1 <= bit_depth <= 24):
+    if bit_depth is not None and not (isinstance(bit_depth, numbers.Integral) and not isinstance(bit_depth, bool) and 1 <= bit_depth <= 24):
         raise InputError(f"bit_depth must be None or a whole number in 1..24, got {bit_depth!r}")
     if not 0 < clip_sharpness < math.inf:
         raise InputError(f"clip_sharpness must be a positive number, got {clip_sharpness!r}")
@@ -207,7 +216,7 @@ def sensor(
         signal = signal + std * z
     captured = _SaturatingClip.apply(signal, clip_sharpness)
     if bit_depth is not None:
-        captured = _StraightThroughRound.apply(captured, float(2**bit_depth - 1))
+        captured = _StraightThroughRound.apply(captured, float(2 ** int(bit_depth) - 1))
     return captured
 
 
@@ -247,7 +256,8 @@ def simulate(
         generator: random generator for the noise.
 
     Returns:
-        Capture with (M, N, 3) captures, (M, K, 3) effective emission and the exposure used.
+        Capture with (M, N, 3) captures, (M, K, 3) effective emission and the exposure used, in the
+        patterns' dtype or float32, whichever is wider.
     """
     check_array("patterns", patterns, ("M", rig.rows, rig.cols, 3), value_range=(0.0, 1.0))
     patterns = torch.as_tensor(patterns)
@@ -256,6 +266,9 @@ def simulate(
     if not (noise is None or noise == "rig" or isinstance(noise, NoiseModel)):
         raise InputError(f"noise must be a NoiseModel, None or 'rig', got {noise!r}")
     rig.check_lights(transport.num_lights)
+    # At least float32: float16 radiance underflows (auto exposure would see a black scene) and its
+    # 2^16 quantisation levels overflow.
+    patterns = patterns.to(torch.promote_types(patterns.dtype, torch.float32))
     emitted = display_emission(patterns, rig.backlight_flat(patterns.dtype), rig.gamma, rig.scale)
     radiance = noise_free_radiance(emitted, transport)
     if exposure is None:

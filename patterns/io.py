@@ -28,7 +28,8 @@ def validate_patterns(patterns, name: str = "patterns") -> np.ndarray:
         (M, R, C, 3) float32 numpy array (a copy for tensors, possibly shared for float32 arrays).
     """
     if isinstance(patterns, torch.Tensor):
-        patterns = patterns.detach().cpu().numpy()
+        patterns = patterns.detach().cpu()
+        patterns = (patterns.float() if patterns.dtype == torch.bfloat16 else patterns).numpy()  # numpy has no bfloat16
     if not isinstance(patterns, np.ndarray):
         raise InputError(f"{name}: expected an array of shape (M, R, C, 3), got {type(patterns).__name__}")
     if patterns.dtype.kind not in "fiub":
@@ -79,6 +80,6 @@ def load_patterns(path: str | Path) -> tuple[np.ndarray, dict]:
 
 def check_patterns_match_rig(patterns, rows: int, cols: int) -> None:
     """Raise ``InputError`` unless ``patterns`` (M, R, C, 3) is on the rig's ``rows`` x ``cols`` grid."""
-    shape = tuple(patterns.shape)
+    shape = tuple(np.shape(patterns))
     if len(shape) != 4 or shape[1:3] != (rows, cols):
         raise InputError(f"patterns have shape {shape} but the rig's display grid is {rows} x {cols} (expected (M, {rows}, {cols}, 3))")

@@ -330,6 +330,12 @@ def emission_scale(emission: torch.Tensor) -> torch.Tensor:
     return torch.where(peak > 0, peak, torch.ones_like(peak))
 
 
+def finite_albedo(albedo: torch.Tensor) -> torch.Tensor:
+    """Albedo (any shape, >= 0) divided back by ``emission_scale`` with +inf (an emission near the
+    dtype's smallest normal number) replaced by the dtype's largest finite value."""
+    return torch.nan_to_num(albedo, nan=0.0, posinf=torch.finfo(albedo.dtype).max)
+
+
 def lighting_matrix(emission: torch.Tensor, lights: torch.Tensor) -> torch.Tensor:
     """The matrix G that turns shadowed falloff weights into effective lighting vectors.
 

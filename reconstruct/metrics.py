@@ -27,12 +27,13 @@ def angular_error_deg(estimate: torch.Tensor, truth: torch.Tensor) -> torch.Tens
     """Angle between normals in degrees.
 
     Args:
-        estimate: (..., 3) normals (normalised here).
+        estimate: (..., 3) normals (normalised here), tensor or numpy array.
         truth: (..., 3) normals, same shape.
 
     Returns:
-        (...) angles in [0, 180] degrees in the dtype of ``estimate``, always finite (a zero vector
-        gives 90 degrees). Differentiable with finite gradients.
+        (...) angles in [0, 180] degrees in the dtype of ``estimate`` (float32 for integer input),
+        always finite (a zero vector gives 90 degrees). Differentiable with finite gradients (in
+        float16, the gradient of vectors shorter than about 1e-3 exceeds the dtype's range).
 
     Example:
         >>> angular_error_deg(torch.tensor([[0.0, 0.0, -1.0]]), torch.tensor([[0.0, 1.0, -1.0]]))
@@ -40,6 +41,8 @@ def angular_error_deg(estimate: torch.Tensor, truth: torch.Tensor) -> torch.Tens
     """
     check_array("estimate", estimate, ("...", 3))
     check_array("truth", truth, tuple(estimate.shape))
+    estimate, truth = torch.as_tensor(estimate), torch.as_tensor(truth)
+    out_dtype = estimate.dtype if estimate.is_floating_point() else torch.float32
     first, second = estimate.double(), truth.double()
     # The angle ignores length: bring both to components of at most 1 so no square over- or
     # underflows (vectors of norm 1e200 gave NaN gradients).
@@ -50,7 +53,7 @@ def angular_error_deg(estimate: torch.Tensor, truth: torch.Tensor) -> torch.Tens
     cosine = (first * second).sum(-1)
     degenerate = (first.abs().amax(-1) == 0) | (second.abs().amax(-1) == 0)
     angle = torch.rad2deg(torch.atan2(sine, torch.where(degenerate, torch.ones_like(cosine), cosine)))
-    return torch.where(degenerate, torch.full_like(angle, 90.0), angle).to(estimate.dtype)
+    return torch.where(degenerate, torch.full_like(angle, 90.0), angle).to(out_dtype)
 
 
 def normal_metrics(estimate: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> dict:
@@ -62,18 +65,20 @@ def normal_metrics(estimate: torch.Tensor, truth: torch.Tensor, mask: torch.Tens
         mask: (...) bool, pixels to count.
 
     Returns:
-        dict: mae and median (degrees), under_5, under_10, under_20, under_30 (fractions of the
-        masked pixels with an error below that many degrees, in [0, 1]) and count (pixels); an
-        empty mask gives zeros and count 0.
+        dict: mae and median (degrees; the mean of the two middle errors for an even count),
+        under_5, under_10, under_20, under_30 (fractions of the masked pixels with an error below
+        that many degrees, in [0, 1]) and count (pixels); an empty mask gives zeros and count 0.
     """
-    mask = torch.as_tensor(mask)
+    estimate, truth, mask = torch.as_tensor(estimate), torch.as_tensor(truth), torch.as_tensor(mask)
     check_array("mask", mask, tuple(estimate.shape[:-1]))
     if mask.dtype != torch.bool:
         raise InputError("mask must be a bool array")
     errors = angular_error_deg(estimate.detach(), truth.detach())[mask].double()
     if errors.numel() == 0:
         return {"mae": 0.0, "median": 0.0, "under_5": 0.0, "under_10": 0.0, "under_20": 0.0, "under_30": 0.0, "count": 0}
-    summary = {"mae": float(errors.mean()), "median": float(errors.median())}
+    # torch.median returns the lower of the two middle values; quantile interpolates between them.
+    middle = errors.sort().values[(errors.numel() - 1) // 2 : errors.numel() // 2 + 1]
+    summary = {"mae": float(errors.mean()), "median": float(middle.mean())}
     for limit in (5, 10, 20, 30):
         summary[f"under_{limit}"] = float((errors < limit).double().mean())
     summary["count"] = int(errors.numel())

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import torch
 
 from capture_sim.errors import InputError, check_array
-from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, lighting_matrix
+from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, finite_albedo, lighting_matrix
 from reconstruct.pixel_solve import CONDITION_CAP, Moments, alternate, implicit_step, normalised_moments, relative_residual, take_pixels
 from reconstruct.shadow_search import restarted_search
 
@@ -338,6 +338,11 @@ def solve_pixels(solve_block, captures, emission, points, pixel_index, lights, c
     lighting = lighting_matrix(emission / scale, lights)
     config = working_config(config, dtype)
     count = points.shape[0] if pixel_index is None else pixel_index.numel()
+    if count == 0:
+        # No pixels: empty outputs that are still on the inputs' graph, as every other result is.
+        on_graph = captures[0, :0] * 0 + lighting.sum() * 0  # (0, 3)
+        empty = concatenate_results([], dtype)
+        return dataclasses.replace(empty, normal=on_graph, albedo=on_graph.clone())
     results = []
     for start in range(0, count, MAX_PIXELS_PER_SOLVE):
         block = slice(start, start + MAX_PIXELS_PER_SOLVE) if pixel_index is None else pixel_index[start : start + MAX_PIXELS_PER_SOLVE]
@@ -346,8 +351,12 @@ def solve_pixels(solve_block, captures, emission, points, pixel_index, lights, c
 
 
 def unscale_albedo(result: PSResult, scale: torch.Tensor) -> PSResult:
-    """``result`` with its albedo in the units of the unscaled emission (see ``emission_scale``)."""
-    return dataclasses.replace(result, albedo=result.albedo / scale)
+    """``result`` with its albedo in the units of the unscaled emission (see ``emission_scale``).
+
+    An albedo beyond the dtype's range (an emission near its smallest normal number) is clamped to
+    the largest finite value, so no inf leaves the solver."""
+    return dataclasses.replace(result, albedo=finite_albedo(result.albedo / scale))
+
 
 
 def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSConfig(), chunk_size: int = 8192) -> PSResult:
@@ -362,7 +371,9 @@ def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSC
         falloff: callable distance (metres) -> falloff factor, e.g. ``capture_sim.rig.Falloff``.
         config: solver settings.
         chunk_size: pixels per block of (pixels x lights) work; bounds the temporaries (the
-            unshadowed N x K weights are kept once), results do not depend on it.
+            unshadowed N x K weights are kept once). Results depend on it (and on the thread
+            count) only through float rounding: in float32, up to a few hundredths of a degree on
+            well-conditioned pixels, more on ill-conditioned ones.
 
     Returns:
         PSResult with (N, 3) normals and albedo, (N,) valid, condition, residual and flags. Differentiable

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import torch
 
 from capture_sim.errors import InputError, check_array
-from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, lighting_matrix, lighting_moments
+from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, finite_albedo, lighting_matrix, lighting_moments
 from reconstruct.pixel_solve import put_pixels, symmetric_apply, take_pixels
 
 
@@ -61,8 +61,8 @@ class UnrolledPSConfig:
     def __post_init__(self):
         if self.shadow_iterations < 1 or self.alternations < 0 or self.grad_alternations < 0 or self.chunk_pixels < 1:
             raise InputError("UnrolledPSConfig: shadow_iterations and chunk_pixels must be >= 1, alternation counts >= 0")
-        if not self.damping > 0:
-            raise InputError(f"UnrolledPSConfig.damping must be positive, got {self.damping}")
+        if not 0 < self.damping <= 1:  # relative to the system's scale: above 1 it outweighs the data
+            raise InputError(f"UnrolledPSConfig.damping must lie in (0, 1], got {self.damping!r}")
 
 
 def _dot3(left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
@@ -204,8 +204,11 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
         in ``captures`` and ``emission``.
     """
     check_array("captures", captures, ("M", "N", 3))
+    check_array("lights", lights, ("K", 3))
     check_array("emission", emission, (captures.shape[0], lights.shape[0], 3), value_range=(0.0, float("inf")))
     check_array("points", points, (captures.shape[1], 3))
+    if not all(isinstance(value, torch.Tensor) for value in (captures, emission, points, lights)):
+        raise InputError("captures, emission, points and lights must be torch tensors")
     if not (captures.is_floating_point() and emission.is_floating_point()):
         raise InputError("captures and emission must be floating-point tensors")
     if 0 in (captures.shape[0], lights.shape[0]):
@@ -230,7 +233,10 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
     intensity = captures.permute(0, 2, 1).contiguous()  # (M, 3c, N); pixels contiguous for the gathers
     equation_weight = (intensity < config.saturation_threshold).to(dtype)
     with torch.no_grad():
-        normal, albedo = field.view.T.contiguous(), torch.ones(3, num_pixels, dtype=dtype)
+        # Start facing the camera; a point at the camera centre has no view direction: -z there.
+        normal = field.view.T.contiguous()
+        normal[2] = torch.where(normal.abs().amax(0) > 0, normal[2], -1.0)
+        albedo = torch.ones(3, num_pixels, dtype=dtype)
         state = _ShadowState(num_pixels)
         for _ in range(config.shadow_iterations):
             state.update(field, normal, lighting, intensity, equation_weight)
@@ -245,4 +251,4 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
     # Return camera-facing normals: a back-facing solution (specular or unconverged pixels) is
     # flipped; its albedo is left as solved.
     facing = torch.where(_dot3(normal, view) < 0, -1.0, 1.0).to(dtype)
-    return (normal * facing).T, (albedo / scale).T
+    return (normal * facing).T, finite_albedo(albedo / scale).T

@@ -83,8 +83,9 @@ class WoodhamConfig:
 
     def __post_init__(self):
         check_flag_thresholds(self)
-        if not self.damping > 0 or not 0 <= self.shadow_threshold < 1:
-            raise InputError("WoodhamConfig: damping must be positive and shadow_threshold in [0, 1)")
+        if not 0 < self.damping <= 1 or not 0 <= self.shadow_threshold < 1:
+            # Damping is relative to each system's scale: above 1 it outweighs the data.
+            raise InputError(f"WoodhamConfig: damping must lie in (0, 1] and shadow_threshold in [0, 1), got {self.damping!r}, {self.shadow_threshold!r}")
         if self.max_shadow_iterations < 0 or self.line_search_steps < 0:
             raise InputError("WoodhamConfig: iteration caps must be >= 0")
         positive = ("kink_tolerance_deg", "restart_condition", "condition_threshold", "min_distance")
@@ -300,9 +301,14 @@ def solve_woodham_olat(
     check_array("captures", captures, (lights.shape[0], "N", 3))
     if not (isinstance(captures, torch.Tensor) and captures.is_floating_point()):
         raise InputError("captures must be a floating-point torch tensor")
-    if not exposure > 0:
-        raise InputError(f"exposure must be positive, got {exposure}")
-    emission = torch.full((lights.shape[0], 3), float(exposure), dtype=torch.promote_types(captures.dtype, torch.float32))
+    dtype = torch.promote_types(captures.dtype, torch.float32)
+    try:
+        exposure = float(exposure)
+    except (TypeError, ValueError):
+        raise InputError(f"exposure must be a positive number, got {exposure!r}") from None
+    if not 0 < exposure <= torch.finfo(dtype).max:
+        raise InputError(f"exposure must be a positive number within {dtype}'s range, got {exposure!r}")
+    emission = torch.full((lights.shape[0], 3), exposure, dtype=dtype)
     _check_inputs(captures, emission[None].expand(lights.shape[0], -1, -1), points, lights, config, chunk_size)
     return _solve(captures, None, points, None, lights, falloff, config, chunk_size, light_emission=emission)
 

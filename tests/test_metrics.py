@@ -1,6 +1,7 @@
 """Normal-error and relighting metrics against hand computations."""
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -101,3 +102,11 @@ def test_bad_inputs_raise():
         angular_error_deg(torch.zeros(3, 2), torch.zeros(3, 2))
     with pytest.raises(InputError):
         normal_metrics(torch.zeros(2, 3), torch.zeros(2, 3), torch.ones(3, dtype=torch.bool))
+
+
+def test_median_of_an_even_count_and_numpy_inputs():
+    estimate = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, -1.0]])
+    truth = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
+    metrics = normal_metrics(estimate, truth, np.ones(2, dtype=bool))
+    assert metrics["median"] == pytest.approx(22.5) and metrics["mae"] == pytest.approx(22.5)
+    assert angular_error_deg(np.array([[0, 0, -1]]), np.array([[0, 1, -1]])).dtype == torch.float32

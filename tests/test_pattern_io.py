@@ -170,3 +170,14 @@ def test_png_bad_inputs_raise(tmp_path):
     mpimg.imsave(rgba, np.zeros((2, 3, 3)), format="png")
     with pytest.raises(InputError, match="grey or RGB"):
         decode_png(rgba.getvalue())
+
+
+def test_bfloat16_patterns_and_list_shapes_are_read():
+    import torch
+
+    from patterns.io import check_patterns_match_rig, validate_patterns
+
+    values = validate_patterns(torch.full((1, 2, 3, 3), 0.5, dtype=torch.bfloat16))
+    assert values.dtype == np.float32 and (values == 0.5).all()
+    with pytest.raises(InputError):
+        check_patterns_match_rig([1, 2], 9, 16)

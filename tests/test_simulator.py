@@ -66,8 +66,9 @@ def test_auto_exposure_puts_percentile_at_target():
     for percentile in (99.9, 50.0, 100.0):  # exactly the rank statistic, top and middle included
         rank = math.ceil(percentile / 100 * values.numel())
         assert auto_exposure(radiance, percentile) == 0.9 / float(torch.kthvalue(values, rank).values)
-    with_nan = torch.tensor([1.0, math.nan, 2.0, 3.0])  # NaN orders last, as in kthvalue
-    assert auto_exposure(with_nan, 50.0) == 0.9 / 2.0
+    with pytest.raises(InputError, match="NaN"):  # refused wherever it would rank
+        auto_exposure(torch.tensor([1.0, math.nan, 2.0, 3.0]), 50.0)
+    assert auto_exposure(torch.tensor([1, 2, 3])) == 0.9 / 3.0  # integer radiance is read as float
     assert auto_exposure(torch.zeros(2, 10, 3)) == 1.0
 
 
@@ -181,3 +182,25 @@ def test_review_fixes_for_sensor_rig_and_files(tiny_rig, tmp_path):
         assert (os.stat(tmp_path / "a.txt").st_mode & 0o777) == 0o644
     finally:
         os.umask(umask)
+
+
+def test_half_precision_and_gamma_below_one_stay_finite(tiny_rig):
+    """float16 quantisation at 16 bits overflowed (65535 levels), float16 radiance under auto
+    exposure underflowed to a black scene, and d/dP (P + B)^gamma is infinite at P + B = 0."""
+    import dataclasses
+
+    assert torch.equal(sensor(torch.ones(3).half(), None, 16), torch.ones(3).half())
+    assert torch.isfinite(sensor(torch.full((4,), 0.7).half(), None, np.int64(16))).all()  # numpy integers are bit depths too
+    rng = np.random.default_rng(0)
+    olat = rng.uniform(0, 1e-6, size=(tiny_rig.num_lights, tiny_rig.camera.height, tiny_rig.camera.width, 3)).astype(np.float32)
+    transport = light_transport(olat)
+    patterns = torch.rand(2, tiny_rig.rows, tiny_rig.cols, 3, generator=torch.Generator().manual_seed(0))
+    single = simulate(patterns, transport, tiny_rig, exposure="auto", noise=None, bit_depth=None)
+    half = simulate(patterns.half(), transport, tiny_rig, exposure="auto", noise=None, bit_depth=None)
+    assert half.captures.dtype == torch.float32 and half.exposure == pytest.approx(single.exposure, rel=1e-2)
+    dark_rig = dataclasses.replace(tiny_rig, backlight=np.zeros((tiny_rig.rows, tiny_rig.cols)), gamma=0.5)
+    black = torch.zeros(2, tiny_rig.rows, tiny_rig.cols, 3, requires_grad=True)
+    simulate(black, transport, dark_rig, exposure=1.0, noise=None, bit_depth=None).captures.sum().backward()
+    assert torch.isfinite(black.grad).all()
+    with pytest.raises(InputError):
+        display_emission(torch.rand(3), torch.zeros(1), 2.2)

@@ -228,3 +228,37 @@ def test_emission_in_any_units_gives_the_same_normals(problem, factor):
     woodham = solve_woodham_olat(olat, points, lights, Falloff())
     woodham_scaled = solve_woodham_olat(olat, points, lights, Falloff(), exposure=factor)
     assert torch.equal(woodham_scaled.valid, woodham.valid) and (woodham_scaled.normal - woodham.normal).abs().max() < 5e-4
+
+
+def test_edge_cases_from_the_numerics_review(problem):
+    """Empty pixel sets stay on the graph, subnormal emission gives finite albedo, out-of-range
+    settings are refused, and a point at the camera centre still gets a unit normal."""
+    from capture_sim.errors import InputError
+    from reconstruct.unrolled_ps import UnrolledPSConfig, solve_ps_unrolled
+    from reconstruct.woodham import WoodhamConfig
+
+    captures, emission, points = (problem[key].float() for key in ("captures", "emission", "points"))
+    lights = problem["scene"].lights.float()
+    empty_captures = captures[:, :0].clone().requires_grad_()
+    empty = solve_ps(empty_captures, emission, points[:0], lights, Falloff())
+    (empty.normal.sum() + empty.albedo.sum()).backward()  # raised "does not require grad" before
+    assert empty.normal.shape == (0, 3) and empty_captures.grad.shape == empty_captures.shape
+    subnormal = emission * 1e-41  # below float32's smallest normal number: albedo ~1e41 overflows
+    assert torch.isfinite(solve_ps(captures, subnormal, points, lights, Falloff()).albedo).all()
+    assert torch.isfinite(solve_ps_unrolled(captures, subnormal, points, lights, Falloff())[1]).all()
+    olat = problem["olat"].float()
+    assert torch.isfinite(solve_woodham_olat(olat, points, lights, Falloff(), exposure=1e-45).albedo).all()
+    for exposure in (1e39, "bright", math.nan):
+        with pytest.raises(InputError, match="exposure"):
+            solve_woodham_olat(olat, points, lights, Falloff(), exposure=exposure)
+    for make in (lambda: WoodhamConfig(damping=2.0), lambda: WoodhamConfig(damping=math.inf), lambda: UnrolledPSConfig(damping=1e30)):
+        with pytest.raises(InputError, match="damping"):
+            make()
+    with pytest.raises(InputError):
+        solve_ps_unrolled(captures, emission, points, lights[:, :2], Falloff())
+    with pytest.raises(InputError):
+        solve_ps_unrolled(captures.numpy(), emission, points, lights, Falloff())
+    at_centre = points.clone()
+    at_centre[0] = 0.0
+    normal, _ = solve_ps_unrolled(captures, emission, at_centre, lights, Falloff())
+    assert torch.allclose(normal.norm(dim=1), torch.ones(normal.shape[0]), atol=1e-5)
