@@ -176,6 +176,8 @@ class Rig:
             raise InputError(f"rig {self.name}: exposure must be positive or auto")
         if self.bit_depth is not None and not 1 <= self.bit_depth <= 24:
             raise InputError(f"rig {self.name}: bit_depth must be 1..24 or none")
+        if not (math.isfinite(self.working_distance) and self.working_distance > 0):
+            raise InputError(f"rig {self.name}: working_distance must be a positive number of metres, got {self.working_distance!r}")
         panel_size(self.panel_pixels, f"rig {self.name}: panel_pixels")
 
     @property
@@ -225,6 +227,8 @@ def load_rig(name_or_path: str | Path = DEFAULT_RIG) -> Rig:
     """Load a rig from a preset name (``configs/rigs/NAME.toml``) or a TOML file path."""
     path = Path(name_or_path)
     if path.suffix != ".toml":
+        if path.exists() and not (RIG_DIR / f"{name_or_path}.toml").exists():
+            raise InputError(f"rig {name_or_path}: a rig file must be a TOML file named *.toml (or give a preset: {', '.join(available_rigs())})")
         path = RIG_DIR / f"{name_or_path}.toml"
         if not path.exists():
             raise InputError(f"unknown rig {name_or_path!r}; presets: {', '.join(available_rigs())}")
@@ -269,6 +273,8 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
             positions = panel_positions(**display["panel"])
         exposure = config.get("exposure", "auto")
         bit_depth = config.get("bit_depth", 12)
+        if "exposure_ms" in cam:
+            camera_exposure_ms(cam["exposure_ms"])
         return Rig(
             name=config.get("name", default_name),
             light_positions=positions,
@@ -300,6 +306,13 @@ def panel_size(panel_pixels, name: str = "panel_pixels") -> tuple[int, int]:
     if len(values) != 2 or not all(is_whole_number(v, 1) for v in values):
         raise InputError(f"{name} must be two positive whole numbers (height, width), got {panel_pixels!r}")
     return int(values[0]), int(values[1])
+
+
+def camera_exposure_ms(value) -> float:
+    """A rig's ``camera.exposure_ms`` (capture time per image) as a positive finite float."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+        raise InputError(f"camera exposure_ms must be a positive number of milliseconds, got {value!r}")
+    return float(value)
 
 
 def _number(name: str, value) -> float:

@@ -29,6 +29,9 @@ from patterns.io import check_patterns_match_rig, validate_patterns
 from patterns.png import encode_png, read_png
 
 MANIFEST_NAME = "manifest.json"
+EXPORT_MARKER = ".displex-export-in-progress"
+"""Written when an export starts and removed when its manifest is written: a folder holding it
+was written by an interrupted export, so its frame files may be replaced."""
 CONTACT_SHEET_NAME = "contact_sheet.png"
 FORMAT = "displex-frames/1"
 _BIT_DEPTHS = (8, 16)
@@ -125,10 +128,19 @@ def export_frames(
     col_bounds = superpixel_boundaries(rig.cols, width)
     mirrored = columns_mirrored(rig)
     out_dir.mkdir(parents=True, exist_ok=True)
-    # A stale manifest would describe frames about to be replaced; without it the folder reads as
-    # incomplete. Frames of an earlier export (more patterns, or OLAT frames) would be played too.
+    # Frames of an earlier export (more patterns, or OLAT frames) would be played too: remove
+    # them, but only from a folder an export wrote (its manifest, or the marker of an export that
+    # was interrupted); other files with such names are the user's.
+    marker = out_dir / EXPORT_MARKER
+    ours = (out_dir / MANIFEST_NAME).exists() or marker.exists()
+    frame_globs = ("pattern_*.png", "olat_*.png", "black.png", "white.png")
+    if not ours and any(any(out_dir.glob(pattern_glob)) for pattern_glob in frame_globs):
+        raise InputError(f"{out_dir} holds frame files (pattern_*.png, olat_*.png, ...) but no {MANIFEST_NAME}: "
+                         "not an export folder; choose another folder or remove them")
+    write_bytes(marker, b"export in progress\n")
+    # A stale manifest would describe frames about to be replaced; without it the folder reads as incomplete.
     (out_dir / MANIFEST_NAME).unlink(missing_ok=True)
-    for pattern_glob in ("pattern_*.png", "olat_*.png", "black.png", "white.png"):
+    for pattern_glob in frame_globs:
         for stale in out_dir.glob(pattern_glob):
             stale.unlink()
 
@@ -173,6 +185,7 @@ def export_frames(
         "contact_sheet": CONTACT_SHEET_NAME,
     }
     write_json(out_dir / MANIFEST_NAME, manifest)
+    marker.unlink(missing_ok=True)
     return manifest
 
 

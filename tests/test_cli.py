@@ -211,7 +211,12 @@ def test_ctrl_c_gives_one_line_with_the_resume_hint(tmp_path, scene_file, capsys
         raise KeyboardInterrupt
 
     monkeypatch.setattr("train.learn.train_patterns", interrupted)
-    assert run(["train", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "k.npz")]) == 130
+    command = ["train", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "k.npz")]
+    assert run(command) == 130
+    err = capsys.readouterr().err.strip()
+    assert err == "displex: interrupted; no checkpoint was written yet; rerun the same command to start again", err
+    (tmp_path / "k.ckpt.pt").write_bytes(b"")  # as if a checkpoint had been written before the interrupt
+    assert run(command) == 130
     err = capsys.readouterr().err.strip()
     assert err.startswith("displex: interrupted; rerun the same command") and err.endswith("k.ckpt.pt") and "\n" not in err, err
 
@@ -300,3 +305,39 @@ def test_search_command_writes_trace_and_tensorboard_log(tmp_path, scene_file, c
     assert np.allclose(values, [float(row.split(",")[-2]) for row in rows], rtol=1e-5)
     assert np.allclose(bests, np.minimum.accumulate(values), rtol=1e-6)
     assert run(argv[:-1] + [str(tmp_path / "other.npz"), "--maxeval", "0"]) == 2
+
+
+def test_review_fixes_rig_values_stale_captures_and_logdir(tmp_path, scene_file, capsys):
+    """A rig whose camera.exposure_ms is not a number or whose working distance is not positive is
+    refused; a second simulate with fewer patterns removes the first one's extra captures; an
+    unusable --logdir is one error line; non-finite config values are written as strings."""
+    import math
+
+    from capture_sim.errors import InputError
+    from capture_sim.rig import RIG_DIR
+    from train.config_io import config_to_dict
+    from train.learn import TrainConfig
+
+    text = (RIG_DIR / "dir-odyssey-ark.toml").read_text()
+    for old, new, message in (("exposure_ms = 440.0", 'exposure_ms = "fast"', "exposure_ms"),
+                              ("exposure_ms = 440.0", "exposure_ms = nan", "exposure_ms"),
+                              ("working_distance = 0.5", "working_distance = 0.0", "working_distance")):
+        assert old in text
+        bad = tmp_path / "bad_rig.toml"
+        bad.write_text(text.replace(old, new))
+        with pytest.raises(InputError, match=message):
+            load_rig(bad)
+    rig = load_rig()
+    many, _ = _pattern_file(tmp_path, "random", rig)
+    few, _ = _pattern_file(tmp_path, "white", rig)
+    out = tmp_path / "sim"
+    for patterns in (many, few):
+        assert run(["simulate", "--scene", str(scene_file), "--patterns", str(patterns), "--out", str(out), "--noise", "off"]) == 0
+    assert sorted(p.name for p in out.glob("capture_*.png")) == ["capture_000.png"]
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    capsys.readouterr()
+    assert run(["train", "--scenes", str(scene_file), "--steps", "1", "--out", str(tmp_path / "t.npz"), "--logdir", str(blocker / "logs")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--logdir" in err and "Traceback" not in err
+    assert config_to_dict(TrainConfig(angle_cap_deg=math.inf))["angle_cap_deg"] == "inf"

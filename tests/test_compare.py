@@ -332,3 +332,11 @@ def test_specular_free_section_states_a_skipped_or_disabled_check():
     assert specular_free_section(dict(results, specular_free={"enabled": False}), summary, summary["rows"]) == []
     lines = specular_free_section(dict(results, specular_free={"enabled": True, "skipped": "scene x has no separate diffuse stack"}), summary, summary["rows"])
     assert "Skipped: scene x has no separate diffuse stack." in lines
+
+
+def test_rig_file_in_a_compare_config_is_relative_to_the_repository(tmp_path):
+    from train.compare import compare_config_from_dict
+
+    config = compare_config_from_dict({"rig": "rigs/mine.toml"}, root=tmp_path)
+    assert config.rig == str(tmp_path / "rigs" / "mine.toml")
+    assert compare_config_from_dict({"rig": "dir-odyssey-ark"}, root=tmp_path).rig == "dir-odyssey-ark"

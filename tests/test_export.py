@@ -237,3 +237,20 @@ def test_reexport_removes_stale_frames_and_bad_inputs_are_refused(tmp_path, smal
         (out / "manifest.json").write_text(json.dumps(broken))
         with pytest.raises(InputError):
             import_frames(out)
+
+
+def test_export_keeps_frame_files_it_did_not_write(tmp_path, small_rig):
+    from patterns.export import EXPORT_MARKER
+
+    mine = tmp_path / "user"
+    mine.mkdir()
+    (mine / "olat_000.png").write_bytes(b"the user's own image")
+    with pytest.raises(InputError, match="not an export folder"):
+        export_frames(_patterns(small_rig, 1), small_rig, mine)
+    assert (mine / "olat_000.png").read_bytes() == b"the user's own image"
+    interrupted = tmp_path / "interrupted"  # an export stopped before its manifest: frames and the marker
+    interrupted.mkdir()
+    (interrupted / EXPORT_MARKER).write_text("export in progress\n")
+    (interrupted / "pattern_007.png").write_bytes(b"stale")
+    export_frames(_patterns(small_rig, 1), small_rig, interrupted)
+    assert sorted(p.name for p in interrupted.iterdir()) == ["contact_sheet.png", "manifest.json", "pattern_000.png"]

@@ -2,6 +2,7 @@
 import csv
 import json
 import time
+import warnings
 
 import nlopt
 import numpy as np
@@ -177,3 +178,15 @@ def test_run_search_writes_patterns_trace_and_chart(scene_dir, tmp_path, algorit
 def test_every_algorithm_is_known_to_nlopt():
     for name in ALGORITHMS:
         assert hasattr(nlopt, name)
+
+
+def test_a_start_that_leaves_every_pixel_invalid_is_warned(scene_dir, tmp_path):
+    from capture_sim.errors import DisplexWarning
+
+    config = SearchConfig(family="olat", num_patterns=2, maxeval=1, scenes=(str(scene_dir),), scene_size=SIZE, pixels_per_scene=100)
+    with pytest.warns(DisplexWarning, match="every pixel"):
+        run_search(config, tmp_path / "olat.npz", progress=False)
+    good = SearchConfig(family="tri_complementary", num_patterns=2, maxeval=1, scenes=(str(scene_dir),), scene_size=SIZE, pixels_per_scene=100)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DisplexWarning)
+        run_search(good, tmp_path / "tri.npz", progress=False)

@@ -6,6 +6,7 @@ call the ``run_*`` functions directly.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -218,7 +219,10 @@ def _train(args) -> None:
 def _train_interrupted(args) -> str:
     from train.learn import checkpoint_path
 
-    return f"rerun the same command to resume from its last checkpoint, {checkpoint_path(args.out)}"
+    checkpoint = checkpoint_path(args.out)
+    if not checkpoint.exists():
+        return "no checkpoint was written yet; rerun the same command to start again"
+    return f"rerun the same command to resume from its last checkpoint, {checkpoint}"
 
 
 def _search(args) -> None:
@@ -392,8 +396,14 @@ def _run(argv: list[str] | None) -> int:
     except FileNotFoundError as err:
         print(f"displex: error: file not found: {err.filename}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # The reader of our output went away (``displex patterns list | head -1``): not an error
+        # to report; stdout goes to devnull so that the interpreter's final flush stays quiet.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
     except OSError as err:
-        print(f"displex: error: {err.strerror or err}: {err.filename}", file=sys.stderr)
+        name = os.fsdecode(err.filename) if err.filename is not None else None
+        print(f"displex: error: {err.strerror or err}{': ' + name if name else ''}", file=sys.stderr)
         return 2
     except (MemoryError, RuntimeError) as err:
         # torch reports a failed CPU allocation as a RuntimeError; anything else is a bug.
@@ -404,10 +414,5 @@ def _run(argv: list[str] | None) -> int:
     return 0
 
 
-def entrypoint() -> None:
-    """Console-script entry point."""
-    sys.exit(run())
-
-
 if __name__ == "__main__":
-    entrypoint()
+    sys.exit(run())

@@ -30,11 +30,11 @@ from tqdm import tqdm
 
 from capture_sim.atomic import write_json
 from capture_sim.errors import InputError, check_seed
-from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, RIG_DIR, load_rig
+from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, RIG_DIR, camera_exposure_ms, load_rig
 from capture_sim.toml_io import load_toml
 from patterns.families import FAMILIES, PRESETS, get_family, make_patterns
 from patterns.io import load_patterns, save_patterns
-from train.config_io import config_from_dict, config_to_dict
+from train.config_io import config_from_dict, config_to_dict, json_value
 from train.evaluate import EvalSettings, evaluate_scene
 from reconstruct.photometric_stereo import PSConfig
 from train.learn import TrainConfig, train_patterns
@@ -271,8 +271,8 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
     Args:
         values: the TOML tables: top-level fields, ``[learned]``, ``[learned_at.M]``,
             ``[learned_seeds_at]``, ``[[search]]`` and ``[[external]]``.
-        root: folder that relative paths (external patterns, scenes) are relative to; None leaves
-            them as given (relative to the working directory).
+        root: folder that relative paths (external patterns, scenes, a rig given as a .toml
+            file) are relative to; None leaves them as given (relative to the working directory).
         source: name of the config for error messages.
     """
     values = dict(values)
@@ -313,6 +313,8 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
         for key in ("train_scenes", "test_scenes"):
             if key in values:
                 values[key] = [_resolve(path, root) for path in values[key]]
+        if isinstance(values.get("rig"), str) and values["rig"].endswith(".toml"):  # a preset name stays a name
+            values["rig"] = _resolve(values["rig"], root)
     return config_from_dict(CompareConfig, values, source=source)
 
 
@@ -338,8 +340,7 @@ def compare_config_to_dict(config: CompareConfig) -> dict:
     out["learned_at"] = {str(m): dict(v) for m, v in config.learned_at.items()}
     out["learned_seeds_at"] = {str(m): list(v) for m, v in config.learned_seeds_at.items()}
     out["learned_counts"] = None if config.learned_counts is None else list(config.learned_counts)
-    # JSON has no infinity (e.g. restart_condition = inf): such values are written as strings.
-    out["solver"] = {key: str(value) if isinstance(value, float) and not math.isfinite(value) else value for key, value in config.solver.items()}
+    out["solver"] = {key: json_value(value) for key, value in config.solver.items()}
     return out
 
 
@@ -348,7 +349,11 @@ def rig_exposure_ms(rig_name: str) -> tuple[float, str]:
     path = Path(rig_name) if str(rig_name).endswith(".toml") else RIG_DIR / f"{rig_name}.toml"
     camera = load_toml(path).get("camera", {}) if path.is_file() else {}
     if "exposure_ms" in camera:
-        return float(camera["exposure_ms"]), f"rig {rig_name}: camera.exposure_ms"
+        try:
+            exposure_ms = camera_exposure_ms(camera["exposure_ms"])
+        except InputError as err:
+            raise InputError(f"rig {rig_name}: {err}") from None
+        return exposure_ms, f"rig {rig_name}: camera.exposure_ms"
     return DEFAULT_EXPOSURE_MS, "default (the reference camera's 440 ms; the rig gives no camera.exposure_ms)"
 
 
@@ -702,7 +707,6 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     rig = load_rig(config.rig)
     exposure_ms, exposure_source = rig_exposure_ms(config.rig)
     resolved = compare_config_to_dict(config)
-    write_json(out_dir / "config.json", resolved)
     test_raw = resolve_scenes(tuple(config.test_scenes), "test", rig, tuple(config.scene_size), config.scene_seed)
     test_scenes = [scene_pixels(scene, rig, require_normals=True) for scene in test_raw]
     free_scenes, free_reason = specular_free_scenes(test_raw, rig) if config.specular_free_check else (None, None)
@@ -742,7 +746,10 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     results["timings"]["total_seconds"] = time.perf_counter() - began
     report = write_report(results, out_dir, {method.id: method.patterns for method in methods if not isinstance(method.patterns, str)})
     results["report"] = str(report)
+    # config.json is written with the results, not before the run: a run refused or interrupted
+    # part-way leaves the folder's config, results and report describing the same finished run.
     write_json(out_dir / "results.json", results)
+    write_json(out_dir / "config.json", resolved)
     return results
 
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from pathlib import Path
@@ -67,14 +68,21 @@ def load_config(cls, path: str | Path | None, overrides: dict | None = None):
     return config_from_dict(cls, values, source=str(path or cls.__name__))
 
 
+def json_value(value):
+    """``value`` as strict JSON can hold it: JSON has no infinity or NaN (``angle_cap_deg = inf``,
+    ``restart_condition = inf``), so non-finite floats become the strings "inf", "-inf", "nan"."""
+    return str(value) if isinstance(value, float) and not math.isfinite(value) else value
+
+
 def config_to_dict(config) -> dict:
-    """A JSON/TOML-friendly dict of a config dataclass (paths and tuples become str and lists)."""
+    """A JSON/TOML-friendly dict of a config dataclass (paths and tuples become str and lists,
+    non-finite floats strings, see ``json_value``)."""
     out = {}
     for field in dataclasses.fields(config):
         value = getattr(config, field.name)
         if isinstance(value, Path):
             value = str(value)
         elif isinstance(value, tuple):
-            value = [str(v) if isinstance(v, Path) else v for v in value]
-        out[field.name] = value
+            value = [str(v) if isinstance(v, Path) else json_value(v) for v in value]
+        out[field.name] = json_value(value)
     return out

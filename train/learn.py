@@ -13,6 +13,7 @@ checkpoint continues exactly as an uninterrupted one.
 from __future__ import annotations
 
 import math
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -396,6 +397,13 @@ def summary_writer(logdir: Path | None):
         return None
     if Path(logdir).exists() and not Path(logdir).is_dir():
         raise InputError(f"--logdir {logdir} is a file, not a folder")
+    # The writer writes from a background thread, where a failure would print a thread traceback:
+    # try the folder here first.
+    try:
+        Path(logdir).mkdir(parents=True, exist_ok=True)
+        tempfile.TemporaryFile(dir=logdir).close()
+    except OSError as err:
+        raise InputError(f"--logdir {logdir} is not writable: {err.strerror or err}") from None
     from torch.utils.tensorboard import SummaryWriter
 
     return SummaryWriter(str(logdir))

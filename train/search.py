@@ -25,6 +25,7 @@ import csv
 import io
 import math
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -35,7 +36,7 @@ import torch
 from tqdm import tqdm
 
 from capture_sim.atomic import write_json, write_text
-from capture_sim.errors import InputError, check_seed
+from capture_sim.errors import DisplexWarning, InputError, check_seed
 from capture_sim.rig import DEFAULT_RIG, load_rig
 from patterns.families import PRESETS, default_vector, get_family
 from patterns.io import save_patterns
@@ -352,6 +353,8 @@ class PatternObjective:
         self.num_patterns, self.rows, self.cols = num_patterns, rows, cols
         self.scenes, self.noise_scale, self.sharpness, self.seed, self.ps_config = scenes, noise_scale, sharpness, seed, ps_config
         self.columns = fixed_pixel_subsets(scenes, pixels_per_scene, seed)
+        self.invalid_fractions: list[float] = []
+        """Per scene, the share of pixels the solver flagged invalid at the latest evaluation."""
 
     def patterns(self, vector: np.ndarray | torch.Tensor) -> torch.Tensor:
         """(M, R, C, 3) float32 patterns of a (P,) parameter vector (differentiable in a tensor)."""
@@ -360,7 +363,7 @@ class PatternObjective:
 
     def value(self, patterns: torch.Tensor) -> torch.Tensor:
         """Scalar mean over scenes of the mean angle (degrees) over each scene's pixel subset."""
-        losses = []
+        losses, invalid = [], []
         for index, (pixels, columns) in enumerate(zip(self.scenes, self.columns)):
             noise = torch.Generator().manual_seed(self.seed * 1000 + index)
             capture = capture_scene(pixels, patterns, self.noise_scale, "auto", noise, columns)
@@ -368,6 +371,8 @@ class PatternObjective:
             truth = pixels.normal if columns is None else pixels.normal[columns]
             result = solve_ps(capture.captures, capture.emission, points, pixels.lights(), pixels.rig.falloff, self.ps_config)
             losses.append(normal_loss(result.normal, truth, "angular"))
+            invalid.append(float((~result.valid).float().mean()) if result.valid.numel() else 1.0)
+        self.invalid_fractions = invalid
         return torch.rad2deg(torch.stack(losses).mean())
 
     def __call__(self, vector: np.ndarray, need_gradient: bool) -> tuple[float, np.ndarray | None]:
@@ -469,6 +474,10 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
     seen: list = []
 
     def on_evaluation(index, x, value, best):
+        if index == 0 and objective.invalid_fractions and min(objective.invalid_fractions) == 1.0:
+            warnings.warn(f"the start patterns of {config.family} (M = {config.num_patterns}) leave every pixel of every search "
+                          "scene invalid (too few, identical, dark or saturated captures): the MAE cannot guide the search",
+                          DisplexWarning, stacklevel=2)
         seen.append((x, value))
         bar.update(1)
         bar.set_postfix(mae=f"{value:.2f}", best=f"{best:.2f}")

@@ -1,6 +1,9 @@
 """`displex simulate`: captures of one scene under a pattern set, written as arrays, PNGs and a sheet."""
 from __future__ import annotations
 
+import json
+import re
+
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -100,12 +103,15 @@ def run_simulate(config: SimulateConfig) -> dict:
         )
     images = transport.to_image(capture.captures).numpy().astype(np.float32)
     out = Path(config.out)
+    previous = _previous_captures(out)
     save_npy(out / "captures.npy", images)
     names = []
     for index, image in enumerate(images):
         name = f"capture_{index:03d}.png"
         write_png(out / name, np.round(image * 65535).astype(np.uint16))
         names.append(name)
+    for stale in sorted(set(previous) - set(names)):  # an earlier run with more patterns
+        (out / stale).unlink(missing_ok=True)
     meta = {
         "scene": str(config.scene),
         "patterns": str(config.patterns),
@@ -134,3 +140,13 @@ def run_simulate(config: SimulateConfig) -> dict:
     )
     save_figure(fig, out / "contact_sheet.png")
     return meta
+
+
+def _previous_captures(out: Path) -> list[str]:
+    """Capture PNGs that an earlier ``simulate`` into ``out`` listed in its meta.json (only names
+    it writes itself, so a hand-edited meta cannot delete other files)."""
+    try:
+        files = json.loads((out / "meta.json").read_text()).get("files", [])
+    except (OSError, ValueError, AttributeError):
+        return []
+    return [name for name in files if isinstance(name, str) and re.fullmatch(r"capture_\d{3,}\.png", name)]
