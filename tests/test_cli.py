@@ -341,3 +341,11 @@ def test_review_fixes_rig_values_stale_captures_and_logdir(tmp_path, scene_file,
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "--logdir" in err and "Traceback" not in err
     assert config_to_dict(TrainConfig(angle_cap_deg=math.inf))["angle_cap_deg"] == "inf"
+
+
+def test_errors_about_flag_values_name_the_flag(tmp_path, capsys):
+    for command, flag in ((["train", "--steps", "-1"], "--steps"), (["train", "--M", "0"], "--M"), (["search", "--maxeval", "0"], "--maxeval")):
+        capsys.readouterr()
+        assert run([*command, "--out", str(tmp_path / "p.npz")]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("displex: error:") and f"(set by {flag})" in err and err.count("\n") == 1, err

@@ -195,6 +195,11 @@ def _evaluate(args) -> None:
     print(f"mean MAE {document['mean_mae']:.2f} deg")
 
 
+def _flag_names(overrides: dict, **special: str) -> dict:
+    """Config field -> the flag that sets it (``rerender_weight`` -> ``--rerender-weight``)."""
+    return {key: special.get(key, "--" + key.replace("_", "-")) for key in overrides}
+
+
 def _train(args) -> None:
     from train.config_io import load_config
     from train.learn import TrainConfig, output_files, train_patterns
@@ -208,7 +213,7 @@ def _train(args) -> None:
         "seed": args.seed,
         "rerender_weight": args.rerender_weight,
     }
-    config = load_config(TrainConfig, args.config, overrides)
+    config = load_config(TrainConfig, args.config, overrides, flags=_flag_names(overrides, num_patterns="--M"))
     refuse_overwriting(output_files(args.out), [("--init file", config.init), ("--config file", args.config),
                                                 *(("scene", scene) for scene in config.scenes)])
     result = train_patterns(config, args.out, logdir=args.logdir, checkpoint_mode="fresh" if args.fresh else "resume")
@@ -238,7 +243,7 @@ def _search(args) -> None:
         "seed": args.seed,
         "scenes": None if args.scenes is None else tuple(str(p) for p in args.scenes),
     }
-    config = load_config(SearchConfig, args.config, overrides)
+    config = load_config(SearchConfig, args.config, overrides, flags=_flag_names(overrides, num_patterns="--M"))
     refuse_overwriting(output_files(args.out), [("--config file", args.config), *(("scene", scene) for scene in config.scenes)])
     summary = run_search(config, args.out, logdir=args.logdir)
     print(f"{summary['family']} M={summary['num_patterns']} {summary['algorithm']}: MAE {summary['start_mae']:.2f} -> "

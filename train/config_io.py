@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import types
 import typing
 from pathlib import Path
@@ -61,11 +62,21 @@ def _checked_value(key: str, value, hint, source: str):
     return value
 
 
-def load_config(cls, path: str | Path | None, overrides: dict | None = None):
-    """Defaults of ``cls``, updated by the TOML file at ``path`` (if any), then by non-None overrides."""
+def load_config(cls, path: str | Path | None, overrides: dict | None = None, flags: dict | None = None):
+    """Defaults of ``cls``, updated by the TOML file at ``path`` (if any), then by non-None overrides.
+
+    ``flags`` maps override keys to the command-line flags that set them: an error about a value a
+    flag set names the flag (``--steps``), not only the field."""
     values = {} if path is None else dict(load_toml(path))
-    values.update({key: value for key, value in (overrides or {}).items() if value is not None})
-    return config_from_dict(cls, values, source=str(path or cls.__name__))
+    given = {key: value for key, value in (overrides or {}).items() if value is not None}
+    values.update(given)
+    try:
+        return config_from_dict(cls, values, source=str(path or cls.__name__))
+    except InputError as err:
+        named = [flag for key, flag in (flags or {}).items() if key in given and re.search(rf"\b{key}\b", str(err))]
+        if not named:
+            raise
+        raise InputError(f"{err} (set by {', '.join(named)})") from None
 
 
 def json_value(value):
