@@ -332,8 +332,9 @@ def emission_scale(emission: torch.Tensor) -> torch.Tensor:
 
 def finite_albedo(albedo: torch.Tensor) -> torch.Tensor:
     """Albedo (any shape, >= 0) divided back by ``emission_scale`` with +inf (an emission near the
-    dtype's smallest normal number) replaced by the dtype's largest finite value."""
-    return torch.nan_to_num(albedo, nan=0.0, posinf=torch.finfo(albedo.dtype).max)
+    dtype's smallest normal number) replaced by the dtype's largest finite value. A clamp, not
+    ``nan_to_num``: a NaN would be a solver bug, not something to turn into a plausible 0."""
+    return albedo.clamp(max=torch.finfo(albedo.dtype).max)
 
 
 def lighting_matrix(emission: torch.Tensor, lights: torch.Tensor) -> torch.Tensor:

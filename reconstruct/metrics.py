@@ -76,7 +76,7 @@ def normal_metrics(estimate: torch.Tensor, truth: torch.Tensor, mask: torch.Tens
     errors = angular_error_deg(estimate.detach(), truth.detach())[mask].double()
     if errors.numel() == 0:
         return {"mae": 0.0, "median": 0.0, "under_5": 0.0, "under_10": 0.0, "under_20": 0.0, "under_30": 0.0, "count": 0}
-    # torch.median returns the lower of the two middle values; quantile interpolates between them.
+    # torch.median returns the lower of the two middle values: average both (one for an odd count).
     middle = errors.sort().values[(errors.numel() - 1) // 2 : errors.numel() // 2 + 1]
     summary = {"mae": float(errors.mean()), "median": float(middle.mean())}
     for limit in (5, 10, 20, 30):

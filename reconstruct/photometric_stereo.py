@@ -358,7 +358,6 @@ def unscale_albedo(result: PSResult, scale: torch.Tensor) -> PSResult:
     return dataclasses.replace(result, albedo=finite_albedo(result.albedo / scale))
 
 
-
 def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSConfig(), chunk_size: int = 8192) -> PSResult:
     """Analytic multiplexed RGB photometric stereo of a set of pixels (see the module docstring).
 
