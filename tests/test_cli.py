@@ -118,6 +118,29 @@ def test_evaluate_warns_when_every_pixel_is_invalid(tmp_path, scene_file, capsys
     assert "warning: every pixel of blob-svbrdf-s3 is flagged invalid" in capsys.readouterr().err
 
 
+def test_scene_black_inside_its_mask_is_reported(tmp_path, scene_file, capsys):
+    """A scene lit only outside its mask (a wrong mask, a failed capture) is named by every command
+    that prepares scenes; a lit scene is not."""
+    with np.load(scene_file) as data:
+        arrays = dict(data)
+    for key in ("olat", "diffuse", "specular"):
+        if key in arrays:
+            arrays[key][:, arrays["mask"]] = 0.0
+            arrays[key][:, ~arrays["mask"]] = 0.1  # the background is lit
+    black = tmp_path / "black.npz"
+    np.savez(black, **arrays)
+    commands = {
+        "evaluate": ["evaluate", "--patterns", "olat", "--scenes"],
+        "train": ["train", "--steps", "1", "--fresh", "--out", str(tmp_path / "p.npz"), "--scenes"],
+    }
+    for name, command in commands.items():
+        for scene, warned in ((black, True), (scene_file, False)):
+            capsys.readouterr()
+            assert run([*command, str(scene)]) == 0, name
+            err = capsys.readouterr().err
+            assert ("displex: warning: scene blob-svbrdf-s3 is black inside its mask" in err) == warned, (name, err)
+
+
 def test_scene_lights_far_from_the_rig_are_reported(tmp_path, scene_file, capsys):
     text = (load_rig.__globals__["RIG_DIR"] / "panel-32in-5x10.toml").read_text()
     (tmp_path / "flat.toml").write_text(text.replace("rows = 5", "rows = 9").replace("cols = 10", "cols = 16"))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from capture_sim.errors import InputError
+from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import load_rig
 from capture_sim.synth import write_scene_set
 from train.compare import (
@@ -15,6 +15,7 @@ from train.compare import (
     Method,
     collect_methods,
     compare_config_from_dict,
+    external_methods,
     first_with_same_patterns,
     load_compare_config,
     repository_root,
@@ -119,6 +120,18 @@ def test_unsupported_and_mismatched_methods_are_skipped_with_a_reason(scenes, tm
     reasons = {s["method"]: s["reason"] for s in skipped}
     assert "supports M = 2..12" in reasons["tri_complementary"]
     assert reasons["ddps_learned_M2"] == reasons["ddps_learned_M4"] == "M is not in pattern_counts"
+
+
+def test_external_file_on_another_grid_is_skipped_with_a_warning(scenes, tmp_path):
+    """One config serves rigs of several grids: a file that does not fit this rig is skipped, with
+    the reason in the results and one warning line, not refused."""
+    other_grid = tmp_path / "five_by_ten.npy"
+    np.save(other_grid, np.full((2, 5, 10, 3), 0.5, dtype=np.float32))
+    config, rig = tiny_config(scenes, external=[{"name": "small_panel", "path": str(other_grid)}]), load_rig()
+    reason = f"patterns are 5 x 10, the rig is {rig.rows} x {rig.cols}"
+    with pytest.warns(DisplexWarning, match=f"five_by_ten.npy skipped: {reason}"):
+        methods, skipped = external_methods(config, rig)
+    assert methods == [] and skipped == [{"method": "small_panel", "M": 2, "reason": reason}]
 
 
 def test_unreadable_external_file_stops_the_comparison_before_learning(scenes, tmp_path, monkeypatch):

@@ -21,6 +21,7 @@ import dataclasses
 import json
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,7 +30,7 @@ import torch
 from tqdm import tqdm
 
 from capture_sim.atomic import write_json
-from capture_sim.errors import InputError, check_seed
+from capture_sim.errors import DisplexWarning, InputError, check_seed
 from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, RIG_DIR, camera_exposure_ms, load_rig
 from capture_sim.toml_io import load_toml
 from patterns.families import FAMILIES, PRESETS, get_family, make_patterns
@@ -466,7 +467,11 @@ def external_methods(config: CompareConfig, rig) -> tuple[list[Method], list[dic
         patterns, _ = load_patterns(item.path)
         count = patterns.shape[0]
         if patterns.shape[1:3] != (rig.rows, rig.cols):
-            skipped.append({"method": item.name, "M": count, "reason": f"patterns are {patterns.shape[1]} x {patterns.shape[2]}, the rig is {rig.rows} x {rig.cols}"})
+            reason = f"patterns are {patterns.shape[1]} x {patterns.shape[2]}, the rig is {rig.rows} x {rig.cols}"
+            skipped.append({"method": item.name, "M": count, "reason": reason})
+            # Skipped, not refused: one config serves rigs of several grids, but a file listed for
+            # this one and left out should not go unnoticed until the report is read.
+            warnings.warn(f"external pattern file {item.path} skipped: {reason}", DisplexWarning, stacklevel=2)
         elif count not in config.pattern_counts:
             skipped.append({"method": item.name, "M": count, "reason": "M is not in pattern_counts"})
         else:

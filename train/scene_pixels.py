@@ -5,12 +5,13 @@ transport column, the 3D point, the true normal and which scene it belongs to.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from capture_sim.errors import InputError
+from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import Rig
 from capture_sim.scene import Scene, rig_for_scene
 from capture_sim.simulator import LightTransport, light_transport
@@ -47,13 +48,21 @@ class ScenePixels:
 
 
 def scene_pixels(scene: Scene, rig: Rig, require_normals: bool = False) -> ScenePixels:
-    """Prepare one scene; ``require_normals`` raises ``InputError`` for scenes without ground truth."""
+    """Prepare one scene; ``require_normals`` raises ``InputError`` for scenes without ground truth.
+
+    A scene whose OLAT stack is zero on every masked pixel is usable but probably not meant (a
+    wrong mask, a failed capture, a purely specular scene stripped of its specular stack): it is
+    reported with a ``DisplexWarning``: its captures hold nothing but noise.
+    """
     if require_normals and scene.normal is None:
         raise InputError(f"scene {scene.name} has no ground-truth normals, which this command needs")
     if not scene.mask.any():
         raise InputError(f"scene {scene.name} has an empty mask")
     scene_rig = rig_for_scene(rig, scene)
     transport = light_transport(scene.olat, scene.mask)
+    if not bool(transport.matrix.any()):
+        warnings.warn(f"scene {scene.name} is black inside its mask (its OLAT stack is zero there): its captures hold "
+                      "nothing but noise, so its errors say nothing about the patterns", DisplexWarning, stacklevel=2)
     flat_mask = torch.as_tensor(scene.mask.reshape(-1))
     points = scene.points(scene_rig.working_distance).reshape(-1, 3)[flat_mask]
     normal = None if scene.normal is None else torch.as_tensor(scene.normal, dtype=torch.float32).reshape(-1, 3)[flat_mask]
