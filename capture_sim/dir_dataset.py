@@ -14,11 +14,15 @@ Foreign conventions are mapped here, once:
   files, so OLAT file i = r * C + c was lit by superpixel (r, C - 1 - c): file i goes to our light
   k = (i // C) * C + (C - 1 - i % C) (``dir_file_to_light``).
 - Radiometry. The PNGs are linear 8-bit captures (the published loader only divides by 255), so
-  O = max(0, image / 255 - black / 255): ``black.png`` is the capture with every superpixel at 0
-  (the backlight only), and subtracting it leaves the OLAT per unit display intensity with the
-  backlight removed (DESIGN section 2). The DIR-pms layout ships no black capture, so nothing is
-  subtracted there; its light_directions.txt / light_intensities.txt are checked but not applied
-  (the rig's positions and falloff describe the lights). 16-bit PNGs divide by 65535.
+  O_k = max(0, image / 255 - black / 255) / ((1 + B_k)^gamma - B_k^gamma): ``black.png`` is the
+  capture with every superpixel at 0 (the backlight only); subtracting it removes the backlight,
+  and the division by the display's emission step from set value 0 to 1 of superpixel k (backlight
+  B_k, DESIGN section 3) leaves the OLAT per unit display intensity (DESIGN section 2). The DIR-pms
+  layout ships no black capture, so nothing is subtracted or divided there; its
+  light_directions.txt / light_intensities.txt are checked but not applied (the rig's positions
+  and falloff describe the lights). 16-bit PNGs divide by 65535; 16-bit colour PNGs are read by
+  ``capture_sim.png`` (Pillow would keep only their high bytes), which supports unfiltered files
+  such as displex writes and refuses others with an error.
 - Normals. Their frame is not documented. Rule: if most valid normals inside the mask have
   n_z > 0, they are in an OpenGL-style frame (x right, y up, z towards the camera) and we negate
   y and z to reach the OpenCV frame (n_z < 0 visible); otherwise they are used as they are.
@@ -35,8 +39,9 @@ from PIL import Image
 
 from capture_sim.array_files import read_arrays
 from capture_sim.errors import InputError, check_array
+from capture_sim.png import decode_png
 from capture_sim.rig import Rig
-from capture_sim.scene import Scene
+from capture_sim.scene import MAX_DEPTH_M, Scene
 
 GENERATOR = "displex.dir_dataset"
 LAYOUTS = ("basic", "pms")
@@ -105,6 +110,10 @@ def load_dir_object(folder: str | Path, rig: Rig, downsample: int = 1) -> Scene:
         image_dir = folder / "main" / "diffuseNspecular"
         image_paths = [image_dir / f"{i:03d}.png" for i in range(num_lights)]
         _require_files(image_paths + [image_dir / "black.png", folder / "mask.png"], folder)
+        numbered = [path for path in image_dir.glob("*.png") if path.stem.isdigit()]
+        if len(numbered) != num_lights:  # e.g. a rig of another grid: its first K files would pass
+            raise InputError(f"{image_dir}: {len(numbered)} numbered OLAT images, but rig {rig.name} has {rig.rows} x {rig.cols} = "
+                             f"{num_lights} superpixels")
         black = _read_image(image_dir / "black.png")
         notes["olat"] = (
             "PNG / full scale minus black.png (backlight-only capture), clamped at 0, divided per light by "
@@ -239,8 +248,30 @@ def _check_light_table(path: Path, num_lights: int) -> None:
         raise InputError(f"{path}: expected {num_lights} finite rows of 3 numbers, got shape {table.shape}")
 
 
+def _png_header(path: Path) -> tuple[int, int] | None:
+    """(bit depth, colour type) from a PNG file's header, or None for a file that is not a PNG."""
+    with open(path, "rb") as file:
+        start = file.read(26)
+    if len(start) < 26 or not start.startswith(b"\x89PNG\r\n\x1a\n") or start[12:16] != b"IHDR":
+        return None
+    return start[24], start[25]
+
+
 def _read_image(path: Path) -> np.ndarray:
     """(H, W, 3) float64 image in [0, 1] from an 8-bit or 16-bit PNG (grey is copied to RGB)."""
+    try:
+        header = _png_header(path)
+    except OSError as err:
+        raise InputError(f"{path}: not a readable image ({err.strerror})") from None
+    if header is not None and header[0] == 16 and header[1] in (2, 6):
+        # Pillow reads 16-bit colour PNGs as 8-bit RGB (high bytes only): decode them here.
+        if header[1] == 6:
+            raise InputError(f"{path}: 16-bit RGBA PNGs are not supported (save the OLAT images as 16-bit RGB or grey, or 8-bit)")
+        try:
+            return decode_png(path.read_bytes(), str(path)).astype(np.float64) / 65535.0
+        except InputError as err:
+            raise InputError(f"{err} (16-bit colour PNGs must be unfiltered, as displex writes them; 8-bit and 16-bit grey PNGs "
+                             "may be filtered)") from None
     try:
         with Image.open(path) as image:
             mode = image.mode
@@ -335,7 +366,7 @@ def _to_opencv_normals(normal: np.ndarray, valid: np.ndarray, notes: dict) -> np
 
 def _to_metres(depth: np.ndarray, valid: np.ndarray, notes: dict) -> np.ndarray:
     """Depth in metres: objects sit ~0.5 m away, so a median above 20 can only be millimetres."""
-    if valid.any() and float(np.median(depth[valid])) > 20.0:
+    if valid.any() and float(np.median(depth[valid])) > MAX_DEPTH_M:
         notes["depth_units"] = "millimetres in point_cloud.npy, converted to metres"
         return depth / 1000.0
     notes["depth_units"] = "metres in point_cloud.npy"

@@ -280,13 +280,14 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
             light_positions=positions,
             backlight=np.asarray(display.get("backlight", 0.0), dtype=np.float64),
             camera=camera,
-            gamma=float(display.get("gamma", 2.2)),
-            scale=float(display.get("scale", 1.0)),
+            gamma=_number("display gamma", display.get("gamma", 2.2)),
+            scale=_number("display scale", display.get("scale", 1.0)),
             falloff=Falloff(**config.get("falloff", {})),
-            exposure=None if exposure == "auto" else _number("exposure", exposure),
+            exposure=None if exposure == "auto" else _number("exposure", exposure, "a number or 'auto'"),
             noise=NoiseModel(**config.get("noise", {})),
-            bit_depth=None if bit_depth in (0, "none") else _whole_number("bit_depth", bit_depth),
-            working_distance=float(config.get("working_distance", 0.5)),
+            # ``False == 0``: a bool must not switch quantisation off.
+            bit_depth=None if (bit_depth in (0, "none") and not isinstance(bit_depth, bool)) else _whole_number("bit_depth", bit_depth),
+            working_distance=_number("working_distance", config.get("working_distance", 0.5)),
             panel_pixels=tuple(display.get("panel_pixels", (2160, 3840))),
         )
     except InputError as err:  # a check of a part (camera, panel, Rig): prefix the rig once
@@ -315,9 +316,9 @@ def camera_exposure_ms(value) -> float:
     return float(value)
 
 
-def _number(name: str, value) -> float:
+def _number(name: str, value, expected: str = "a number") -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputError(f"{name} must be a number or 'auto', got {value!r}")
+        raise InputError(f"{name} must be {expected}, got {value!r}")
     return float(value)
 
 

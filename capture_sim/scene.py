@@ -20,6 +20,10 @@ from capture_sim.errors import DisplexWarning, InputError, check_array
 from capture_sim.geometry import points_from_depth
 from capture_sim.rig import Camera, Rig
 
+MAX_DEPTH_M = 20.0
+"""Metres: objects sit about half a metre from the camera, so a median depth above this can only be
+another unit (millimetres), refused in scene files and converted by the DIR loader."""
+
 
 @dataclass(frozen=True, eq=False)
 class Scene:
@@ -98,10 +102,7 @@ def validate_scene(scene: Scene) -> None:
         name += f" ({scene.meta['file']})"
     check_array(f"{name}: olat", scene.olat, ("K", "H", "W", 3))
     num_lights, height, width, _ = scene.olat.shape
-    if scene.olat.dtype not in (np.float16, np.float32):
-        raise InputError(f"{name}: olat must be float16 or float32, got {scene.olat.dtype}")
-    if float(scene.olat.min(initial=0.0)) < 0:
-        raise InputError(f"{name}: olat has negative radiance")
+    _check_radiance(name, "olat", scene.olat)
     if not float(scene.olat.max(initial=0.0)) > 0:
         # Every result from such a scene (learned patterns, errors, exposures) would be meaningless.
         raise InputError(f"{name}: every OLAT value is 0: no superpixel lights the scene")
@@ -141,10 +142,22 @@ def validate_scene(scene: Scene) -> None:
         check_array(f"{name}: depth", scene.depth, (height, width))
         if bool((scene.depth[scene.mask] <= 0).any()):
             raise InputError(f"{name}: depth must be positive inside the mask")
+        median = float(np.median(scene.depth[scene.mask]))
+        if median > MAX_DEPTH_M:
+            raise InputError(f"{name}: depth must be in metres, but its median inside the mask is {median:g} (millimetres?)")
     for key in ("diffuse", "specular"):
         stack = getattr(scene, key)
         if stack is not None:
             check_array(f"{name}: {key}", stack, (num_lights, height, width, 3))
+            _check_radiance(name, key, stack)
+
+
+def _check_radiance(name: str, key: str, stack: np.ndarray) -> None:
+    """An OLAT-like stack must be float16 or float32 (any byte order) and non-negative."""
+    if stack.dtype.kind != "f" or stack.dtype.itemsize not in (2, 4):
+        raise InputError(f"{name}: {key} must be float16 or float32, got {stack.dtype}")
+    if float(stack.min(initial=0.0)) < 0:
+        raise InputError(f"{name}: {key} has negative radiance (min {float(stack.min()):g})")
 
 
 _ARRAY_KEYS = ("olat", "mask", "K_cam", "light_positions", "normal", "depth", "diffuse", "specular")
@@ -161,6 +174,9 @@ def load_scene(path: str | Path) -> Scene:
     for required in ("olat", "mask", "K_cam", "light_positions"):
         if required not in arrays:
             raise InputError(f"{path}: scene is missing required array '{required}'")
+    # Native byte order (files written on big-endian machines or by other tools), same values.
+    arrays = {key: value.astype(value.dtype.newbyteorder("=")) if value.dtype.byteorder == (">" if np.little_endian else "<") else value
+              for key, value in arrays.items()}
     meta.setdefault("name", path.stem)
     meta["file"] = str(path)  # in memory only: outputs are named after the file the user gave
     return Scene(meta=meta, **arrays)

@@ -127,10 +127,13 @@ def auto_exposure(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERC
         radiance: (M, N, 3) noise-free radiance (any layout; all values are pooled).
 
     Returns:
-        e > 0 as a Python float (1.0 when the scene is completely dark, so nothing divides by zero).
+        e > 0 as a Python float (1.0 when the percentile is 0: a dark scene, so nothing divides by
+        zero).
 
     Raises:
-        InputError: the radiance contains NaN (it would be ordered as the brightest value).
+        InputError: the radiance contains NaN (it would be ordered as the brightest value), or its
+            percentile is infinite or a subnormal number (a scene scaled past the dtype's range,
+            whose exposure would be 0 or overflow).
     """
     # The rank statistic is exact in the input's own dtype (converting to float64 would only copy).
     if not (0 < percentile <= 100 and 0 < target < math.inf):
@@ -148,7 +151,12 @@ def auto_exposure(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERC
     level = float(torch.topk(values, values.numel() - rank + 1, sorted=False).values.kthvalue(1).values)
     # Any positive normal number works: radiance may come in any units (an OLAT stack scaled by
     # 1e-20 is still a scene); below the dtype's smallest normal the gain would overflow it.
-    return target / level if level >= torch.finfo(values.dtype).tiny else 1.0
+    if level == 0:
+        return 1.0
+    if not torch.finfo(values.dtype).tiny <= level < math.inf:
+        raise InputError(f"auto exposure: the radiance's {percentile:g}th percentile {level:g} is outside the range of "
+                         f"{values.dtype} (the scene's OLAT values are scaled too far); rescale the scene")
+    return target / level
 
 
 class _SaturatingClip(torch.autograd.Function):

@@ -23,7 +23,7 @@ import torch
 from tqdm import tqdm
 
 from capture_sim.atomic import write_json
-from capture_sim.errors import InputError, check_seed
+from capture_sim.errors import MAX_SEED, InputError, check_seed
 from capture_sim.materials import MATERIALS, make_material
 from capture_sim.render import render_olat
 from capture_sim.rig import Rig
@@ -186,6 +186,9 @@ def default_scene_specs(seed: int = 0) -> dict[str, list[SceneSpec]]:
         ``{"train": [...], "test": [...]}`` of ``SceneSpec``.
     """
     check_seed("seed", seed)
+    largest = (MAX_SEED - (len(_DEFAULT_TRAIN) + len(_DEFAULT_TEST) - 1)) // 100
+    if seed > largest:  # the scenes' own seeds must stay valid seeds
+        raise InputError(f"scene set seed must be at most {largest} (scene i gets seed 100 * seed + i <= {MAX_SEED}), got {seed}")
     specs: dict[str, list[SceneSpec]] = {}
     index = 0
     for split, pairs in (("train", _DEFAULT_TRAIN), ("test", _DEFAULT_TEST)):
@@ -247,6 +250,10 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int
         "cast_shadows": bool(cast_shadows),
         "splits": {split: [] for split in specs},
     }
+    index_path = out_dir / "index.json"
+    # index.json is written last: an interrupted run must not leave an earlier set's index over a
+    # folder of mixed scenes (``displex demo`` reuses a folder whose index matches its settings).
+    index_path.unlink(missing_ok=True)
     for split, spec in tqdm(jobs, desc="synthesising scenes", unit="scene", disable=not progress):
         scene = synthesize_scene(spec.shape, spec.material, rig, height, width, spec.seed, cast_shadows, spec.name)
         relative = Path(split) / f"{spec.name}.npz"
@@ -255,6 +262,5 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int
             "name": spec.name, "file": relative.as_posix(), "shape": spec.shape,
             "material": spec.material, "seed": spec.seed,
         })
-    index_path = out_dir / "index.json"
     write_json(index_path, index)
     return index_path

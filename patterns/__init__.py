@@ -17,7 +17,6 @@ from patterns.families import (
 )
 from patterns.io import check_patterns_match_rig, load_patterns, save_patterns, validate_patterns
 from patterns.parameterization import logits_to_patterns, patterns_to_logits
-from patterns.png import decode_png, encode_png, read_png, write_png
 
 __all__ = [
     "DEFAULT_SHARPNESS",
@@ -29,9 +28,7 @@ __all__ = [
     "check_patterns_match_rig",
     "columns_mirrored",
     "contact_sheet_figure",
-    "decode_png",
     "default_vector",
-    "encode_png",
     "export_frames",
     "get_family",
     "import_frames",
@@ -39,11 +36,9 @@ __all__ = [
     "logits_to_patterns",
     "make_patterns",
     "patterns_to_logits",
-    "read_png",
     "render_frame",
     "save_contact_sheet",
     "save_patterns",
     "superpixel_boundaries",
     "validate_patterns",
-    "write_png",
 ]

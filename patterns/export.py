@@ -23,10 +23,10 @@ import numpy as np
 
 from capture_sim.atomic import write_bytes, write_json
 from capture_sim.errors import InputError, check_array
+from capture_sim.png import encode_png, read_png
 from capture_sim.rig import Rig, panel_size
 from patterns.contact_sheet import save_contact_sheet
 from patterns.io import check_patterns_match_rig, validate_patterns
-from patterns.png import encode_png, read_png
 
 MANIFEST_NAME = "manifest.json"
 EXPORT_MARKER = ".displex-export-in-progress"

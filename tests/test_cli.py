@@ -194,6 +194,10 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
          "grows with the square of the parameter count"),
         (["train", "--rerender-weight", "1e38", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "r.npz")], "learning diverged at step 1"),
     ]
+    # simulate into a folder where one of its outputs is a folder: refused before writing any.
+    cases.append((["simulate", "--scene", str(scene_file), "--patterns", str(good), "--out", str(tmp_path / "sim")],
+                  "contact_sheet.png: it exists and is not a regular file"))
+    (tmp_path / "sim" / "contact_sheet.png").mkdir(parents=True)
     (tmp_path / "twin").mkdir()
     (tmp_path / "twin" / scene_file.name).write_bytes(scene_file.read_bytes())
     for argv, message in cases:
@@ -202,6 +206,7 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         err = capsys.readouterr().err.strip().splitlines()[-1]  # after any progress bar's line
         assert err.startswith("displex: error:") and message in err, (argv, err)
     assert not (tmp_path / "twin.ckpt.pt").exists()  # refused before learning wrote a checkpoint
+    assert sorted(path.name for path in (tmp_path / "sim").iterdir()) == ["contact_sheet.png"]
 
 
 def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeypatch):
@@ -212,6 +217,9 @@ def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeyp
         "bits": ("bit_depth = 12", "bit_depth = inf"),
         "typo": ("bit_depth = 12", "bitdepth = 8"),  # a misspelt key must not fall back to the default
         "camera_typo": ("fx = 1141.8", "fx = 1141.8\nfocal = 3.0"),
+        # TOML booleans are not numbers (false == 0 used to switch quantisation off).
+        "bits_bool": ("bit_depth = 12", "bit_depth = false"),
+        "gamma_bool": ("gamma = 2.2", "gamma = true"),
     }.items():
         assert old in text, (name, old)
         (tmp_path / f"{name}.toml").write_text(text.replace(old, new))
@@ -219,6 +227,8 @@ def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeyp
         assert run(["patterns", "make", "--family", "olat", "--M", "2", "--rig", str(tmp_path / f"{name}.toml"), "--out", str(tmp_path / "p.npz")]) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("displex: error: rig") and "\n" not in err, err
+        if name.endswith("_bool"):
+            assert "got False" in err or "got True" in err, err
 
     def exhausted(*args, **kwargs):
         raise RuntimeError("[enforce fail at alloc_cpu.cpp:127] DefaultCPUAllocator: can't allocate memory: you tried to allocate 80000000000 bytes.")

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import struct
+import zlib
 
 import numpy as np
 import pytest
@@ -12,6 +14,7 @@ from capture_sim.dir_dataset import (
     detect_dir_layout, dir_file_to_light, dir_object_folders, load_dir_dataset, load_dir_object,
 )
 from capture_sim.errors import InputError
+from capture_sim.png import write_png
 from capture_sim.rig import load_rig
 
 HEIGHT, WIDTH = 6, 8
@@ -218,6 +221,38 @@ def test_bad_content_raises(tmp_path, rig):
     folder = _make_basic(tmp_path / "J")
     (folder / "main" / "diffuseNspecular" / "003.png").write_bytes(b"not a png")
     with pytest.raises(InputError, match="003.png"):
+        load_dir_object(folder, rig)
+
+
+def test_olat_count_must_match_the_rig(basic_folder):
+    """A folder of 144 OLAT images is not read as the first 32 of a 4 x 8 rig."""
+    small = load_rig("panel-55in-4x8").with_resolution(HEIGHT, WIDTH)
+    with pytest.raises(InputError, match="144 numbered OLAT images, but rig panel-55in-4x8 has 4 x 8 = 32"):
+        load_dir_object(basic_folder, small)
+
+
+def test_sixteen_bit_colour_pngs_keep_their_low_bytes(tmp_path, rig):
+    """Pillow reads 16-bit RGB PNGs as 8 bits; the loader decodes them itself (as displex writes
+    them) and refuses filtered ones instead of truncating them."""
+    folder = _make_basic(tmp_path / "K")
+    image_dir = folder / "main" / "diffuseNspecular"
+    sixteen = np.zeros((HEIGHT, WIDTH, 3), dtype=np.uint16)
+    sixteen[...] = [200, 300, 40000]
+    write_png(image_dir / "000.png", sixteen)
+    write_png(image_dir / "black.png", np.zeros((HEIGHT, WIDTH, 3), dtype=np.uint16))
+    scene = load_dir_object(folder, rig)
+    light = dir_file_to_light(0, rig.rows, rig.cols)
+    backlight = rig.backlight.reshape(-1)[light]
+    step = (1 + backlight) ** rig.gamma - backlight**rig.gamma
+    inside = _object_mask()
+    assert np.allclose(scene.olat[light][inside], np.array([200, 300, 40000]) / 65535 / step, rtol=1e-6)
+    # The same pixels with the PNG 'Sub' filter on every row (as most other writers produce).
+    raw = np.concatenate([np.ones((HEIGHT, 1), np.uint8), np.zeros((HEIGHT, WIDTH * 6), np.uint8)], axis=1)
+    header = struct.pack(">IIBBBBB", WIDTH, HEIGHT, 16, 2, 0, 0, 0)
+    chunks = [(b"IHDR", header), (b"IDAT", zlib.compress(raw.tobytes())), (b"IEND", b"")]
+    (image_dir / "000.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"".join(
+        struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body)) for kind, body in chunks))
+    with pytest.raises(InputError, match="000.png: PNG uses row filters.*16-bit colour PNGs must be unfiltered"):
         load_dir_object(folder, rig)
 
 

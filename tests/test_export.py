@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from capture_sim.errors import InputError
+from capture_sim.png import read_png, write_png
 from capture_sim.rig import available_rigs, load_rig
 from patterns.export import columns_mirrored, export_frames, import_frames, render_frame, superpixel_boundaries
 from patterns.families import make_patterns
-from patterns.png import read_png, write_png
 
 
 @pytest.fixture
@@ -200,7 +200,7 @@ def test_png_with_a_short_header_chunk_is_refused(tmp_path):
     import struct
     import zlib
 
-    from patterns.png import decode_png
+    from capture_sim.png import decode_png
 
     short = b"IHDR" + struct.pack(">II", 4, 4)  # 8 of the 13 header bytes
     data = b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 8) + short + struct.pack(">I", zlib.crc32(short) & 0xFFFFFFFF)

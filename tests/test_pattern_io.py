@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from capture_sim.errors import InputError
+from capture_sim.png import decode_png, encode_png, read_png, write_png
 from patterns.io import check_patterns_match_rig, load_patterns, save_patterns
-from patterns.png import decode_png, encode_png, read_png, write_png
 
 
 def _patterns(num_patterns=3, rows=9, cols=16, seed=0):

@@ -70,6 +70,11 @@ def test_auto_exposure_puts_percentile_at_target():
         auto_exposure(torch.tensor([1.0, math.nan, 2.0, 3.0]), 50.0)
     assert auto_exposure(torch.tensor([1, 2, 3])) == 0.9 / 3.0  # integer radiance is read as float
     assert auto_exposure(torch.zeros(2, 10, 3)) == 1.0
+    # A scene scaled past float32's range has no usable exposure: said, not returned as 0 or 1.
+    for scale in (math.inf, 1e-42):
+        with pytest.raises(InputError, match="outside the range of torch.float32.*rescale the scene"):
+            auto_exposure(torch.full((2, 10, 3), scale))
+    assert auto_exposure(torch.full((2, 10, 3), 1e-30)) == pytest.approx(0.9e30)  # tiny units are fine
 
 
 def test_noise_variance_matches_model():

@@ -12,7 +12,7 @@ from capture_sim.errors import InputError
 from capture_sim.geometry import pixel_rays
 from capture_sim.materials import MATERIALS, make_material
 from capture_sim.rig import Falloff, load_rig
-from capture_sim.scene import load_scene
+from capture_sim.scene import load_scene, save_scene
 from capture_sim.shapes import (
     GRAZING_COS, SHAPES, Shape, cast_camera_rays, make_shape, shadow_visibility,
 )
@@ -312,6 +312,10 @@ def test_default_specs_split_disjoint_and_cover_material_kinds():
     assert [s.seed for s in default_scene_specs(seed=1)["train"]] != [s.seed for s in specs["train"]]
     with pytest.raises(InputError):
         default_scene_specs(seed=-2)
+    largest = (2**32 - 1 - 9) // 100  # every scene seed 100 * seed + i must be a valid seed
+    assert default_scene_specs(seed=largest)["test"][-1].seed == 100 * largest + 9
+    with pytest.raises(InputError, match=f"scene set seed must be at most {largest}"):
+        default_scene_specs(seed=largest + 1)
 
 
 def test_default_scene_set_reproducible(rig):
@@ -338,6 +342,25 @@ def test_write_scene_set_writes_loadable_scenes_and_index(rig, tmp_path):
         f"{e['name']}.npz" for e in index["splits"]["train"])
 
 
+def test_interrupted_scene_set_leaves_no_index(rig, tmp_path, monkeypatch):
+    """An index is written last and an earlier one removed first: an interrupted run never leaves
+    an index that describes scenes the folder no longer holds (the demo reuses matching sets)."""
+    out = tmp_path / "set"
+    write_scene_set(out, rig, height=12, width=14, seed=0, progress=False)
+    calls = []
+
+    def interrupted_save(scene, path):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(path)
+        save_scene(scene, path)
+
+    monkeypatch.setitem(write_scene_set.__globals__, "save_scene", interrupted_save)
+    with pytest.raises(KeyboardInterrupt):
+        write_scene_set(out, rig, height=12, width=14, seed=1, progress=False)
+    assert len(calls) == 1 and not (out / "index.json").exists()
+
+
 def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tmp_path):
     import dataclasses
     import json
@@ -353,6 +376,14 @@ def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tm
         validate_scene(dataclasses.replace(scene, normal=2 * scene.normal))
     with pytest.raises(InputError, match="K_cam"):
         validate_scene(dataclasses.replace(scene, K_cam=np.zeros((3, 3))))
+    with pytest.raises(InputError, match="depth must be in metres, but its median inside the mask is 4.*millimetres"):
+        validate_scene(dataclasses.replace(scene, depth=scene.depth * 1000))
+    negative = scene.diffuse.copy()
+    negative[0, 0, 0, 0] = -0.01  # a noisy polarisation split
+    with pytest.raises(InputError, match="diffuse has negative radiance"):
+        validate_scene(dataclasses.replace(scene, diffuse=negative))
+    with pytest.raises(InputError, match="specular must be float16 or float32, got float64"):
+        validate_scene(dataclasses.replace(scene, specular=scene.specular.astype(np.float64)))
     path = tmp_path / "s.npz"
     save_scene(scene, path)
     with np.load(path) as data:
@@ -389,6 +420,10 @@ def test_damaged_or_wrong_scene_files_give_one_clear_error(tmp_path):
     np.save(tmp_path / "stack.npy", scene.olat)
     with pytest.raises(InputError, match="plain .npy"):
         load_scene(tmp_path / "stack.npy")
+    with np.load(good) as data:
+        swapped = {key: value.astype(value.dtype.newbyteorder(">")) if value.dtype.kind == "f" else value for key, value in data.items()}
+    np.savez(tmp_path / "big_endian.npz", **swapped)
+    assert np.array_equal(load_scene(tmp_path / "big_endian.npz").olat, scene.olat)  # same values, native order
     with np.load(good) as data:
         arrays = dict(data)
     arrays["K_cam"] = np.array([["a", "b", "c"]] * 3)

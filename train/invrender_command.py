@@ -30,11 +30,11 @@ import torch
 from capture_sim.atomic import save_npy, write_json
 from capture_sim.errors import InputError, check_seed
 from capture_sim.geometry import pixel_rays
+from capture_sim.png import write_png
 from capture_sim.rig import DEFAULT_RIG, load_rig
 from capture_sim.scene import load_scene, rig_for_scene
 from capture_sim.simulator import auto_exposure, sensor, simulate
 from patterns.io import check_patterns_match_rig, load_patterns
-from patterns.png import write_png
 from reconstruct.metrics import angular_error_deg, normal_metrics
 from reconstruct.inverse_render import FitConfig, FitProblem, InverseRenderResult, render_under_patterns
 from reconstruct.model_selection import SelectionConfig, choose_light_model, light_spread, select_basis

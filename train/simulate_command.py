@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from capture_sim.atomic import save_npy, write_json
+from capture_sim.atomic import refuse_overwriting, save_npy, write_json
 from capture_sim.errors import InputError, check_seed
+from capture_sim.png import write_png
 from capture_sim.rig import DEFAULT_RIG, Rig, load_rig
 from capture_sim.scene import Scene, load_scene, rig_for_scene
 from capture_sim.simulator import auto_exposure, display_emission, light_transport, noise_free_radiance, simulate
 from patterns.io import check_patterns_match_rig, load_patterns
-from patterns.png import write_png
 from train.figures import for_display, image_grid, save_figure
 
 
@@ -87,6 +87,11 @@ def run_simulate(config: SimulateConfig) -> dict:
     if config.noise not in ("off", "default"):
         raise InputError(f"--noise must be 'off' or 'default', got {config.noise!r}")
     patterns = torch.as_tensor(pattern_values, dtype=torch.float32)
+    out = Path(config.out)
+    names = [f"capture_{index:03d}.png" for index in range(len(pattern_values))]
+    # Every output is checked before any is written: a bad one must not leave a half-replaced run.
+    refuse_overwriting([("output", out / name) for name in ("captures.npy", "meta.json", "contact_sheet.png", *names)],
+                       [("scene file", config.scene), ("pattern file", config.patterns)])
     setting = parse_exposure(str(config.exposure), rig)
     exposure = resolve_exposure(setting, patterns, scene, rig)
     noise_free = config.noise == "off"
@@ -102,14 +107,10 @@ def run_simulate(config: SimulateConfig) -> dict:
             generator=torch.Generator().manual_seed(config.seed),
         )
     images = transport.to_image(capture.captures).numpy().astype(np.float32)
-    out = Path(config.out)
     previous = _previous_captures(out)
     save_npy(out / "captures.npy", images)
-    names = []
-    for index, image in enumerate(images):
-        name = f"capture_{index:03d}.png"
+    for name, image in zip(names, images):
         write_png(out / name, np.round(image * 65535).astype(np.uint16))
-        names.append(name)
     for stale in sorted(set(previous) - set(names)):  # an earlier run with more patterns
         (out / stale).unlink(missing_ok=True)
     meta = {
