@@ -53,9 +53,11 @@ def read_meta(arrays: dict, path: str | Path, what: str) -> dict:
     """
     if "meta" not in arrays:
         return {}
+    stored = np.asarray(arrays["meta"])
     try:
-        meta = json.loads(str(arrays["meta"]))
-    except ValueError as err:
+        # JSON text as a numpy unicode string, or as ASCII bytes (pattern files: a quarter the size).
+        meta = json.loads(stored.item().decode("ascii") if stored.dtype.kind == "S" and stored.ndim == 0 else str(stored))
+    except ValueError as err:  # UnicodeDecodeError included
         raise InputError(f"{path}: {what} meta is not JSON ({err})") from None
     if not isinstance(meta, dict):
         raise InputError(f"{path}: {what} meta must be a JSON object, got {type(meta).__name__}")

@@ -99,8 +99,9 @@ def check_array(
         low, high = value_range
         vmin, vmax = float(value.min()), float(value.max())
         if vmin < low or vmax > high:
-            # Enough digits that a value a rounding step outside a bound does not print as the bound.
-            raise InputError(f"{name}: values must lie in [{low:g}, {high:g}], found [{vmin:.9g}, {vmax:.9g}]")
+            # repr: the shortest text that reads back as the same float, so a value a rounding step
+            # outside a bound (float32 or float64) never prints as the bound itself.
+            raise InputError(f"{name}: values must lie in [{low:g}, {high:g}], found [{vmin!r}, {vmax!r}]")
 
 
 def _dims_match(actual: tuple[int, ...], expected: tuple) -> bool:

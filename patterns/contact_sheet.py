@@ -16,14 +16,20 @@ _CAPTION = (
 )
 
 
-def contact_sheet_figure(patterns, title: str, labels: list[str] | None = None, columns: int = 4):
-    """A figure with one panel per pattern.
+MAX_PANELS = 48
+"""Patterns drawn on one sheet: beyond a few dozen panels the sheet is unreadable, and each costs
+about a quarter of a second (1000 patterns took over ten minutes)."""
+
+
+def contact_sheet_figure(patterns, title: str, labels: list[str] | None = None, columns: int = 4, max_panels: int = MAX_PANELS):
+    """A figure with one panel per pattern (the first ``max_panels`` of larger sets, said in the title).
 
     Args:
         patterns: (M, R, C, 3) display set values in [0, 1].
         title: figure title (e.g. family, M and rig).
         labels: optional M panel titles; default "pattern m".
         columns: panels per row of the sheet.
+        max_panels: most patterns drawn.
 
     Returns:
         A matplotlib ``Figure`` (object API, no pyplot state).
@@ -35,6 +41,9 @@ def contact_sheet_figure(patterns, title: str, labels: list[str] | None = None, 
     labels = labels or [f"pattern {m}" for m in range(count)]
     if len(labels) != count:
         raise InputError(f"contact sheet: {len(labels)} labels for {count} patterns")
+    if count > max_panels:
+        title = f"{title}; the first {max_panels} of {count} shown"
+        values, labels, count = values[:max_panels], labels[:max_panels], max_panels
     columns = max(1, min(columns, count))
     sheet_rows = math.ceil(count / columns)
     panel_width = 3.2

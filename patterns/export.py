@@ -34,6 +34,8 @@ EXPORT_MARKER = ".displex-export-in-progress"
 was written by an interrupted export, so its frame files may be replaced."""
 CONTACT_SHEET_NAME = "contact_sheet.png"
 FORMAT = "displex-frames/1"
+FRAME_GLOBS = ("pattern_*.png", "olat_*.png", "black.png", "white.png")
+"""Names of the frame files an export writes (and removes from an earlier export)."""
 _BIT_DEPTHS = (8, 16)
 
 
@@ -83,6 +85,22 @@ def render_frame(
     return np.repeat(np.repeat(quantised, row_sizes, axis=0), col_sizes, axis=1)
 
 
+def _written_by_export(manifest_path: Path) -> bool:
+    """Whether ``manifest_path`` is a manifest that ``export_frames`` wrote (its format tag)."""
+    try:
+        return json.loads(manifest_path.read_text()).get("format") == FORMAT
+    except (OSError, ValueError, AttributeError):  # missing, unreadable, not JSON, not an object
+        return False
+
+
+def replaced_by_export(path: str | Path, out_dir: str | Path) -> bool:
+    """Whether an export into ``out_dir`` would replace or remove the file ``path`` (a frame name,
+    the manifest or the contact sheet in that folder): a command's input must not be one."""
+    path = Path(path).resolve()
+    names = (MANIFEST_NAME, CONTACT_SHEET_NAME, EXPORT_MARKER)
+    return path.parent == Path(out_dir).resolve() and (path.name in names or any(path.match(glob) for glob in FRAME_GLOBS))
+
+
 def export_frames(
     patterns,
     rig: Rig,
@@ -127,20 +145,25 @@ def export_frames(
     row_bounds = superpixel_boundaries(rig.rows, height)
     col_bounds = superpixel_boundaries(rig.cols, width)
     mirrored = columns_mirrored(rig)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(f"cannot create export folder {out_dir}: {err.strerror}") from None
     # Frames of an earlier export (more patterns, or OLAT frames) would be played too: remove
     # them, but only from a folder an export wrote (its manifest, or the marker of an export that
     # was interrupted); other files with such names are the user's.
     marker = out_dir / EXPORT_MARKER
-    ours = (out_dir / MANIFEST_NAME).exists() or marker.exists()
-    frame_globs = ("pattern_*.png", "olat_*.png", "black.png", "white.png")
-    if not ours and any(any(out_dir.glob(pattern_glob)) for pattern_glob in frame_globs):
+    manifest_path = out_dir / MANIFEST_NAME
+    ours = marker.exists() or _written_by_export(manifest_path)
+    if not ours and manifest_path.exists():
+        raise InputError(f"{manifest_path} was not written by displex export: not an export folder; choose another folder")
+    if not ours and any(any(out_dir.glob(pattern_glob)) for pattern_glob in FRAME_GLOBS):
         raise InputError(f"{out_dir} holds frame files (pattern_*.png, olat_*.png, ...) but no {MANIFEST_NAME}: "
                          "not an export folder; choose another folder or remove them")
     write_bytes(marker, b"export in progress\n")
     # A stale manifest would describe frames about to be replaced; without it the folder reads as incomplete.
     (out_dir / MANIFEST_NAME).unlink(missing_ok=True)
-    for pattern_glob in frame_globs:
+    for pattern_glob in FRAME_GLOBS:
         for stale in out_dir.glob(pattern_glob):
             stale.unlink()
 
@@ -220,7 +243,8 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
         if hashlib.sha256(path.read_bytes()).hexdigest() != frame.get("sha256"):
             raise InputError(f"{frames_dir}: frame {frame['file']} does not match its SHA-256 in the manifest")
     pattern_frames = sorted((f for f in manifest["frames"] if f.get("kind") == "pattern"), key=lambda f: f["index"])
-    if [f["index"] for f in pattern_frames] != list(range(manifest["num_patterns"])):
+    # The count first: a forged num_patterns of 10^12 must not build a list of that length.
+    if len(pattern_frames) != manifest["num_patterns"] or [f["index"] for f in pattern_frames] != list(range(len(pattern_frames))):
         raise InputError(f"{frames_dir}: manifest lists pattern frames {[f['index'] for f in pattern_frames]}, expected 0..{manifest['num_patterns'] - 1}")
     row_bounds = superpixel_boundaries(rows, height)
     col_bounds = superpixel_boundaries(cols, width)

@@ -78,6 +78,9 @@ class Family:
     name: str = ""
     summary: str = ""
     min_patterns: int = 1
+    values_are_parameters: bool = False
+    """The parameters are the pattern values themselves (random families): a file's meta need not
+    repeat them."""
 
     def max_patterns(self, rows: int, cols: int) -> int:
         """Largest M this family supports on an R x C grid."""
@@ -557,10 +560,16 @@ class TriComplementary(Family):
         pairs = _pair_count(num_patterns)
         size = float(max(rows, cols))
         for j in range(pairs):
+            offsets = {}
             for channel, base_angle in zip(_CHANNELS, (180.0, 0.0, -90.0)):
                 angle = _wrap_deg(base_angle - j * 180.0 / pairs)
+                # G faces R's opposite direction: the negated offset puts its edge on R's, so the
+                # halves stay complementary where the tie rule would shift each edge its own way
+                # (an odd number of cells across the split).
+                offsets[channel] = -offsets["r"] if channel == "g" else _default_split_offset(angle, rows, cols)
+                offset = offsets[channel]
                 params.append(Parameter(f"pair{j}_{channel}_angle_deg", -360.0, 360.0, angle))
-                params.append(Parameter(f"pair{j}_{channel}_offset", -size, size, _default_split_offset(angle, rows, cols)))
+                params.append(Parameter(f"pair{j}_{channel}_offset", -size, size, offset))
         return params
 
     def _generate(self, values, num_patterns, rows, cols, sharpness):
@@ -579,6 +588,7 @@ class _RandomFamily(Family):
     """
 
     channels = 3
+    values_are_parameters = True
 
     def max_patterns(self, rows, cols):
         return _MAX_RANDOM_PATTERNS

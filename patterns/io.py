@@ -40,21 +40,32 @@ def validate_patterns(patterns, name: str = "patterns") -> np.ndarray:
     return np.ascontiguousarray(patterns, dtype=np.float32)
 
 
+def check_pattern_output(path: str | Path) -> None:
+    """Refuse a pattern output named .npy: a pattern file is an .npz archive (values and
+    provenance), which numpy and other tools would misread under a .npy name."""
+    if Path(path).suffix.lower() == ".npy":
+        raise InputError(f"pattern files are written as .npz (values and provenance), not .npy: {path}")
+
+
 def save_patterns(path: str | Path, patterns, meta: dict | None = None) -> None:
     """Write a pattern file (.npz) atomically.
 
     Args:
-        path: output file; written as .npz whatever its suffix.
+        path: output file; written as .npz whatever its suffix, except that a .npy name is refused
+            (``check_pattern_output``).
         patterns: (M, R, C, 3) display set values in [0, 1] (numpy array or torch tensor).
         meta: JSON-serialisable description: family, parameters, rig, how the patterns were made.
     """
+    check_pattern_output(path)
     values = validate_patterns(patterns)
     try:
         meta_json = json.dumps(meta or {})
     except (TypeError, ValueError) as err:
         raise InputError(f"pattern meta must be JSON-serialisable ({err})") from None
     buffer = io.BytesIO()
-    np.savez(buffer, patterns=values, meta=np.array(meta_json))
+    # Meta as ASCII bytes (json escapes the rest), compressed: a unicode array would take 4 bytes
+    # per character, and the meta of a random family lists every value as a named parameter.
+    np.savez_compressed(buffer, patterns=values, meta=np.array(meta_json.encode("ascii")))
     write_bytes(path, buffer.getvalue())
 
 

@@ -17,7 +17,8 @@ from capture_sim.errors import InputError, check_array
 LOGIT_LIMIT = 16.0
 """Largest |logit| kept during learning: the largest whole number whose float32 sigmoid gradient
 is not 0 (sigmoid'(16) = 1.2e-7, which Adam rescales to a normal step; sigmoid(17) rounds to 1 and
-its gradient to exactly 0). Values are unchanged: sigmoid(16) is the largest float32 below 1."""
+its gradient to exactly 0). Values barely change: sigmoid(16) = 1 - 1.2e-7 in float32, two
+float32 steps below 1 (far below one level of a 16-bit display frame)."""
 
 
 def keep_movable(logits: torch.Tensor) -> None:

@@ -154,6 +154,7 @@ def test_scene_lights_far_from_the_rig_are_reported(tmp_path, scene_file, capsys
 def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
     """Inputs that used to pass silently or with a misleading message: each error names the problem."""
     good, _ = _pattern_file(tmp_path, "random", load_rig())
+    good_npz = tmp_path / "good.npz"
     with np.load(scene_file) as data:
         arrays = dict(data)
     variants = {"dark": {"olat": np.zeros_like(arrays["olat"])}, "bool_depth": {"depth": arrays["mask"].copy()},
@@ -182,7 +183,8 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         (["evaluate", "--patterns", "olat", "--scenes", ""], "empty path"),
         # Outputs that would destroy an input.
         (["evaluate", "--patterns", str(good), "--scenes", str(scene_file), "--json", str(good)], "would destroy"),
-        (["train", "--init", str(good), "--out", str(good)], "would destroy"),
+        (["train", "--init", str(good_npz), "--out", str(good_npz)], "would destroy"),
+        (["train", "--out", str(good)], "pattern files are written as .npz"),  # a .npy name, refused before learning
         (["bench", "ps", "--sweep", "--json", str(tmp_path / "sweep.png")], "would destroy"),
         # An output path that is a folder fails before any work (train used to learn first).
         (["train", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "twin")], "exists and is not a regular file"),
@@ -198,6 +200,7 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
     cases.append((["simulate", "--scene", str(scene_file), "--patterns", str(good), "--out", str(tmp_path / "sim")],
                   "contact_sheet.png: it exists and is not a regular file"))
     (tmp_path / "sim" / "contact_sheet.png").mkdir(parents=True)
+    save_patterns(good_npz, np.load(good))
     (tmp_path / "twin").mkdir()
     (tmp_path / "twin" / scene_file.name).write_bytes(scene_file.read_bytes())
     for argv, message in cases:

@@ -334,7 +334,8 @@ def test_specular_free_evaluation_is_the_evaluation_of_the_diffuse_scenes(scenes
     metal = dataclasses.replace(raw[1], diffuse=np.zeros_like(raw[1].diffuse))
     assert "zero inside the mask" in specular_free_scenes([metal], rig)[1]
     assert raw[0].without_specular().olat.dtype == raw[0].olat.dtype
-    assert dataclasses.replace(raw[0], diffuse=raw[0].diffuse.astype(np.float64)).without_specular().olat.dtype == raw[0].olat.dtype
+    with pytest.raises(InputError, match="diffuse must be float16 or float32, got float64"):  # as olat, refused with the scene
+        dataclasses.replace(raw[0], diffuse=raw[0].diffuse.astype(np.float64))
 
 
 def test_specular_free_section_states_a_skipped_or_disabled_check():

@@ -254,3 +254,49 @@ def test_export_keeps_frame_files_it_did_not_write(tmp_path, small_rig):
     (interrupted / "pattern_007.png").write_bytes(b"stale")
     export_frames(_patterns(small_rig, 1), small_rig, interrupted)
     assert sorted(p.name for p in interrupted.iterdir()) == ["contact_sheet.png", "manifest.json", "pattern_000.png"]
+    # A manifest.json of the user's own does not make a folder an export folder.
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "manifest.json").write_text('{"my": "own manifest"}')
+    (theirs / "black.png").write_bytes(b"precious")
+    with pytest.raises(InputError, match="manifest.json was not written by displex export"):
+        export_frames(_patterns(small_rig, 1), small_rig, theirs)
+    assert sorted(p.name for p in theirs.iterdir()) == ["black.png", "manifest.json"]
+    with pytest.raises(InputError, match="cannot create export folder"):
+        export_frames(_patterns(small_rig, 1), small_rig, theirs / "black.png" / "inside")
+
+
+def test_export_and_pattern_commands_never_destroy_their_inputs(tmp_path, small_rig, capsys):
+    from capture_sim.rig import RIG_DIR
+    from train.cli import run
+
+    out = tmp_path / "frames"
+    export_frames(_patterns(small_rig, 2), small_rig, out)
+    cases = [
+        # import-frames into the export it reads (its contact sheet), then export with that file as input.
+        (["import-frames", str(out), "--out", str(out / "contact_sheet.png")], "would destroy"),
+        (["export", "--patterns", str(out / "pattern_009.png"), "--out", str(out)], "lies in the export folder"),
+        (["patterns", "make", "--family", "olat", "--M", "2", "--rig", str(tmp_path / "rig.toml"), "--out", str(tmp_path / "rig.toml")],
+         "would destroy"),
+    ]
+    (out / "pattern_009.png").write_bytes(b"patterns saved under a frame name")
+    (tmp_path / "rig.toml").write_text((RIG_DIR / "panel-55in-4x8.toml").read_text())
+    for argv, message in cases:
+        capsys.readouterr()
+        assert run(argv) == 2, argv
+        assert message in capsys.readouterr().err, argv
+    assert (out / "pattern_009.png").read_bytes() == b"patterns saved under a frame name"
+    assert (tmp_path / "rig.toml").read_text() == (RIG_DIR / "panel-55in-4x8.toml").read_text()
+    manifest = json.loads((out / "manifest.json").read_text())
+    (out / "manifest.json").write_text(json.dumps(dict(manifest, num_patterns=10**12)))
+    with pytest.raises(InputError, match="manifest lists pattern frames"):
+        import_frames(out)
+
+
+def test_contact_sheet_of_a_large_set_draws_the_first_panels():
+    from patterns.contact_sheet import MAX_PANELS, contact_sheet_figure
+
+    values = np.random.default_rng(0).uniform(0, 1, (MAX_PANELS + 5, 3, 4, 3))
+    fig = contact_sheet_figure(values, "many")
+    drawn = [ax for ax in fig.axes if ax.images]
+    assert len(drawn) == MAX_PANELS and f"the first {MAX_PANELS} of {MAX_PANELS + 5} shown" in fig._suptitle.get_text()

@@ -191,6 +191,14 @@ def test_complementary_pairs_sum_to_lo_plus_hi():
             torch.testing.assert_close(patterns[2 * j] + patterns[2 * j + 1], torch.full_like(patterns[0], 0.9), atol=1e-6, rtol=0)
 
 
+@pytest.mark.parametrize("num_patterns,rows,cols", [(2, 9, 16), (4, 9, 16), (10, 9, 16), (2, 5, 9), (4, 5, 9), (12, 4, 8)])
+def test_tri_complementary_red_and_green_halves_are_complementary(num_patterns, rows, cols):
+    """R and G light opposite halves of every pattern, also where an odd number of cells lies
+    across the split (the middle row used to be dark in both)."""
+    patterns = make_patterns("tri_complementary", num_patterns, rows, cols).double()
+    torch.testing.assert_close(patterns[..., 0] + patterns[..., 1], torch.ones_like(patterns[..., 0]), atol=1e-6, rtol=0)
+
+
 def test_gradient_directions_are_spread_in_opposite_pairs():
     directions = get_family("mono_gradient").directions
     assert directions(4) == [-90.0, 90.0, 180.0, 0.0]

@@ -1,3 +1,4 @@
+import json
 import io
 import struct
 import zlib
@@ -9,6 +10,7 @@ import torch
 
 from capture_sim.errors import InputError
 from capture_sim.png import decode_png, encode_png, read_png, write_png
+from patterns.families import make_patterns
 from patterns.io import check_patterns_match_rig, load_patterns, save_patterns
 
 
@@ -181,3 +183,18 @@ def test_bfloat16_patterns_and_list_shapes_are_read():
     assert values.dtype == np.float32 and (values == 0.5).all()
     with pytest.raises(InputError):
         check_patterns_match_rig([1, 2], 9, 16)
+
+
+def test_meta_of_a_large_random_set_stays_small(tmp_path):
+    """A random family's file does not repeat its values as named parameters, and keeps its meta
+    as compressed ASCII (it used to be 40x the values); files of the older layout still read."""
+    from train.cli import run
+
+    assert run(["patterns", "make", "--family", "tri_random", "--M", "100", "--out", str(tmp_path / "many.npz")]) == 0
+    loaded, meta = load_patterns(tmp_path / "many.npz")
+    assert (tmp_path / "many.npz").stat().st_size < 1.2 * loaded.nbytes and meta["family"] == "tri_random"
+    assert np.array_equal(loaded, make_patterns("tri_random", 100).numpy())
+    save_patterns(tmp_path / "note.npz", loaded[:1], {"note": "réglé", "weights": [0.1] * 1000})
+    assert load_patterns(tmp_path / "note.npz")[1] == {"note": "réglé", "weights": [0.1] * 1000}
+    np.savez(tmp_path / "old.npz", patterns=loaded, meta=np.array(json.dumps({"family": "tri_random"})))
+    assert load_patterns(tmp_path / "old.npz")[1] == {"family": "tri_random"}

@@ -48,6 +48,19 @@ def _path(text: str) -> Path:
     return Path(text)
 
 
+def _pattern_output(text: str) -> Path:
+    """A pattern file to write: .npz (a .npy name would hold an .npz archive, which numpy and other
+    tools would misread)."""
+    from patterns.io import check_pattern_output
+
+    path = _path(text)
+    try:
+        check_pattern_output(path)
+    except InputError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return path
+
+
 RERUN_REUSES_RUNS = "rerun the same command to reuse its finished learning and search runs and resume the interrupted one"
 """What an interrupted compare or demo tells the user."""
 
@@ -83,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     make = patterns.add_parser("make", help="write a heuristic pattern set")
     make.add_argument("--family", required=True, help="family name (see `displex patterns list`)")
     make.add_argument("--M", type=int, required=True, dest="num_patterns", help="number of patterns")
-    make.add_argument("--out", type=_path, required=True)
+    make.add_argument("--out", type=_pattern_output, required=True)
     make.add_argument("--preset", default="default", help="'default' (off level 0) or 'ddps' (published 0.1/0.9 levels)")
     make.add_argument("--seed", type=int, default=0, help="seed of the random families")
     make.add_argument("--rig", default=DEFAULT_RIG)
@@ -116,7 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--seed", type=int, default=None)
     train.add_argument("--logdir", type=_path, default=None, help="TensorBoard log folder")
     train.add_argument("--rerender-weight", type=float, default=None, help="weight of the re-rendering loss (0 = normals only)")
-    train.add_argument("--out", type=_path, required=True, help="learned pattern file (.npz)")
+    train.add_argument("--out", type=_pattern_output, required=True, help="learned pattern file (.npz)")
     train.add_argument("--fresh", action="store_true", help="start afresh: delete the checkpoint of --out instead of resuming it")
     train.set_defaults(handler=_train, interrupted=_train_interrupted)
 
@@ -130,7 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
     search.add_argument("--seed", type=int, default=None)
     search.add_argument("--scenes", type=_path, nargs="+", default=None, help="scenes to optimise on (default: synthetic train split)")
     search.add_argument("--logdir", type=_path, default=None, help="TensorBoard folder: MAE and best-so-far per evaluation")
-    search.add_argument("--out", type=_path, required=True, help="best pattern file; the trace goes to <stem>.trace.csv and .trace.png")
+    search.add_argument("--out", type=_pattern_output, required=True, help="best pattern file; the trace goes to <stem>.trace.csv and .trace.png")
     search.set_defaults(handler=_search)
 
     compare = commands.add_parser("compare", help="compare learned, searched, heuristic and external patterns on held-out scenes")
@@ -148,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     import_frames = commands.add_parser("import-frames", help="recover patterns from exported frames")
     import_frames.add_argument("frames", type=_path, help="folder written by `displex export`")
-    import_frames.add_argument("--out", type=_path, required=True)
+    import_frames.add_argument("--out", type=_pattern_output, required=True)
     import_frames.set_defaults(handler=_import_frames)
 
     invrender = commands.add_parser("invrender", help="baseline inverse renderer: normals, basis BRDFs, relighting")
@@ -260,20 +273,23 @@ def _compare(args) -> None:
 
 def _export(args) -> None:
     from capture_sim.rig import load_rig
-    from patterns.export import export_frames
+    from patterns.export import export_frames, replaced_by_export
     from patterns.io import load_patterns
 
+    if replaced_by_export(args.patterns, args.out):
+        raise InputError(f"--patterns {args.patterns} lies in the export folder under a name the export replaces; move it or choose another --out")
     values, _ = load_patterns(args.patterns)
     manifest = export_frames(values, load_rig(args.rig), args.out, bit_depth=args.bit_depth, include_olat=args.olat)
     print(f"wrote {len(manifest['frames'])} frames and manifest.json to {args.out}")
 
 
 def _import_frames(args) -> None:
-    from patterns.export import import_frames
+    from patterns.export import CONTACT_SHEET_NAME, MANIFEST_NAME, import_frames
     from patterns.io import save_patterns
 
     values, manifest = import_frames(args.frames)
-    frames = [("manifest", args.frames / "manifest.json")] + [("frame", args.frames / frame["file"]) for frame in manifest["frames"]]
+    frames = [("manifest", args.frames / MANIFEST_NAME), ("contact sheet", args.frames / CONTACT_SHEET_NAME)]
+    frames += [("frame", args.frames / frame["file"]) for frame in manifest["frames"]]
     refuse_overwriting([("--out", args.out)], frames)
     save_patterns(args.out, values, {"family": "imported", "made_by": "displex import-frames", "source": str(args.frames), "rig": manifest.get("rig")})
     print(f"recovered {len(values)} patterns from {args.frames} into {args.out}")
@@ -346,11 +362,16 @@ def _patterns_make(args) -> None:
     from patterns.families import get_family, make_patterns
     from patterns.io import save_patterns
 
+    refuse_overwriting([("--out", args.out)], [("--rig file", args.rig)])
     rig = load_rig(args.rig)
     values = make_patterns(args.family, args.num_patterns, rows=rig.rows, cols=rig.cols, preset=args.preset, seed=args.seed)
-    parameters = get_family(args.family).parameters(args.num_patterns, rig.rows, rig.cols, args.preset, args.seed)
+    family = get_family(args.family)
+    if family.values_are_parameters:  # listing them would make the meta several times the values' size
+        parameters = f"the {values.numel()} pattern values (family, seed and preset reproduce them)"
+    else:
+        parameters = {p.name: p.default for p in family.parameters(args.num_patterns, rig.rows, rig.cols, args.preset, args.seed)}
     save_patterns(args.out, values, {"family": args.family, "preset": args.preset, "seed": args.seed, "rig": rig.name,
-                                     "parameters": {p.name: p.default for p in parameters}, "made_by": "displex patterns make"})
+                                     "parameters": parameters, "made_by": "displex patterns make"})
     print(f"wrote {args.family} M={args.num_patterns} to {args.out}")
 
 
