@@ -184,6 +184,11 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         # Outputs that would destroy an input.
         (["evaluate", "--patterns", str(good), "--scenes", str(scene_file), "--json", str(good)], "would destroy"),
         (["train", "--init", str(good_npz), "--out", str(good_npz)], "would destroy"),
+        # A scene inside a --scenes or --val-scenes folder is an input too.
+        (["train", "--steps", "1", "--scenes", str(tmp_path / "twin"), "--out", str(tmp_path / "twin" / scene_file.name)], "would destroy"),
+        (["train", "--steps", "1", "--scenes", str(scene_file), "--val-scenes", str(tmp_path / "twin"), "--out",
+          str(tmp_path / "twin" / scene_file.name)], "would destroy"),
+        (["search", "--maxeval", "2", "--scenes", str(tmp_path / "twin"), "--out", str(tmp_path / "twin" / scene_file.name)], "would destroy"),
         (["train", "--out", str(good)], "pattern files are written as .npz"),  # a .npy name, refused before learning
         (["bench", "ps", "--sweep", "--json", str(tmp_path / "sweep.png")], "would destroy"),
         # An output path that is a folder fails before any work (train used to learn first).
@@ -312,6 +317,13 @@ def test_evaluate_json_matches_saved_normal_maps(tmp_path, scene_file):
         ("pattern_counts = [2, 2]\n", "lists a value twice"),
         ("[[external]]\nname = ''\npath = 'patterns/data/ddps/optimized_tri_random_2.npy'\n", "non-empty and distinct"),
         ("[solver]\nmin_distance = 1e30\n", "min_distance must lie in"),
+        # Learned runs are the normal-only ones; seeds and counts once each; overrides where something is learned.
+        ("[learned]\nrerender_weight = 0.5\n", "may not set rerender_weight"),
+        ("[learned_seeds_at]\n4 = [0, 0]\n", "learned_seeds_at.4 lists a value twice"),
+        ("rerender_counts = [4, 4]\n", "rerender_counts lists a value twice"),
+        ("learned_counts = [2]\n[learned_seeds_at]\n4 = [0, 1]\n", "M = 4, where nothing is learned"),
+        ("[learned_at]\n4 = 5\n", "learned_at.4 must be a table"),
+        ("[learned]\ninit = 'nowhere.npz'\n", "learned init pattern file not found"),
     ],
 )
 def test_compare_refuses_bad_configs(tmp_path, capsys, body, message):

@@ -23,7 +23,7 @@ from train.compare import (
     run_compare,
     run_demo,
 )
-from train.report import CHARTS, aggregate_rows, summary_tables
+from train.report import CHARTS, aggregate_rows, pivot_cell, summary_tables
 
 SIZE = (24, 29)
 REPO = repository_root(Path(__file__).resolve().parent.parent / "configs" / "compare" / "demo.toml")
@@ -165,6 +165,9 @@ def test_summary_tables_against_plain_computation():
     rows = {row["series"]: row for row in aggregate_rows(results, 2.0)}
     assert rows["learned"]["mae"] == pytest.approx(18.0) and rows["learned"]["mae_std"] == pytest.approx(1.0)
     assert rows["learned"]["cost_seconds"] == pytest.approx(15.0) and rows["learned"]["seeds"] == 2
+    # The label is the series' at every M; the seed count goes with each cell of the tables.
+    assert rows["learned"]["label"] == "learned" and pivot_cell(rows["learned"], "mae", 2) == "18.00 (mean of 2 seeds)"
+    assert pivot_cell(rows["a"], "mae", 2) == "20.00"
     summary = summary_tables(results)
     by_noise = {c["noise_scale"]: c for c in summary["learned_vs_heuristic"]}
     assert by_noise[0.5]["best_heuristic"] == "a" and by_noise[0.5]["ratio"] == pytest.approx(8.5 / 10.0)
@@ -354,3 +357,12 @@ def test_rig_file_in_a_compare_config_is_relative_to_the_repository(tmp_path):
     config = compare_config_from_dict({"rig": "rigs/mine.toml"}, root=tmp_path)
     assert config.rig == str(tmp_path / "rigs" / "mine.toml")
     assert compare_config_from_dict({"rig": "dir-odyssey-ark"}, root=tmp_path).rig == "dir-odyssey-ark"
+
+
+def test_relative_learned_init_file_resolves_against_the_repository(scenes):
+    """A [learned] init pattern file is found like an [[external]] one, from any working folder."""
+    config = tiny_config(scenes, learned={"steps": 2, "init": "patterns/data/ddps/initial_tri_random_2.npy"},
+                         learned_at={2: {"init": "tri_gradient"}})
+    assert Path(config.learned["init"]) == REPO / "patterns" / "data" / "ddps" / "initial_tri_random_2.npy"
+    assert config.learned_at[2]["init"] == "tri_gradient"  # a family name stays a name
+    assert config.train_config(2, 0).rerender_weight == 0.0 and config.train_config(2, 0, rerender=True).rerender_weight > 0

@@ -256,3 +256,10 @@ def test_logits_stay_movable_even_with_huge_steps(tmp_path, scene_dirs):
     values = logits.clone().requires_grad_(True)
     torch.sigmoid(values).sum().backward()
     assert bool((values.grad > 0).all())
+
+
+def test_zero_steps_validate_the_start_patterns(scene_dirs, tmp_path):
+    """With no step to validate after, the start patterns are validated once (the command used to
+    say 'not validated: pass --val-scenes' to a user who had passed it)."""
+    result = learn.train_patterns(_config(scene_dirs, steps=0, init="tri_random"), tmp_path / "p.npz", progress=False)
+    assert [step for step, _ in result.val_history] == [0] and math.isfinite(result.val_history[0][1])

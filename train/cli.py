@@ -228,10 +228,19 @@ def _train(args) -> None:
     }
     config = load_config(TrainConfig, args.config, overrides, flags=_flag_names(overrides, num_patterns="--M"))
     refuse_overwriting(output_files(args.out), [("--init file", config.init), ("--config file", args.config),
-                                                *(("scene", scene) for scene in config.scenes)])
+                                                *_scene_files(config.scenes, config.val_scenes)])
     result = train_patterns(config, args.out, logdir=args.logdir, checkpoint_mode="fresh" if args.fresh else "resume")
     last = f", validation MAE {result.val_history[-1][1]:.2f} deg" if result.val_history else " (not validated: pass --val-scenes)"
     print(f"wrote learned patterns to {args.out}{last}")
+
+
+def _scene_files(*groups):
+    """("scene", file) input pairs for ``refuse_overwriting`` from lists of scene paths (files, or
+    folders, whose .npz files are what an output must not replace)."""
+    for paths in groups:
+        for entry in map(Path, paths or ()):
+            for scene in sorted(entry.glob("*.npz")) if entry.is_dir() else [entry]:
+                yield "scene", scene
 
 
 def _train_interrupted(args) -> str:
@@ -257,7 +266,7 @@ def _search(args) -> None:
         "scenes": None if args.scenes is None else tuple(str(p) for p in args.scenes),
     }
     config = load_config(SearchConfig, args.config, overrides, flags=_flag_names(overrides, num_patterns="--M"))
-    refuse_overwriting(output_files(args.out), [("--config file", args.config), *(("scene", scene) for scene in config.scenes)])
+    refuse_overwriting(output_files(args.out), [("--config file", args.config), *_scene_files(config.scenes)])
     summary = run_search(config, args.out, logdir=args.logdir)
     print(f"{summary['family']} M={summary['num_patterns']} {summary['algorithm']}: MAE {summary['start_mae']:.2f} -> "
           f"{summary['best_mae']:.2f} deg in {summary['evaluations']} evaluations ({summary['stop_reason']}); trace {summary['trace_csv']}")

@@ -49,7 +49,9 @@ DEFAULT_EXPOSURE_MS = 440.0
 SUMMARY_METRICS = ("mae", "median", "under_5", "under_10", "under_20", "under_30", "invalid_fraction", "exposure", "seconds")
 """Per-scene metrics averaged over the test scenes (each scene weighs the same)."""
 
-_SET_BY_COMPARE = ("num_patterns", "seed", "rig", "scenes", "val_scenes", "scene_size", "scene_seed", "noise_scale")
+_SET_BY_COMPARE = ("num_patterns", "seed", "rig", "scenes", "val_scenes", "scene_size", "scene_seed", "noise_scale", "rerender_weight")
+"""TrainConfig fields that ``[learned]`` tables may not set (``rerender_weight``: learned runs are
+the normal-only ones the report compares ``rerender_counts`` runs with)."""
 
 
 @dataclass(frozen=True)
@@ -167,11 +169,23 @@ class CompareConfig:
             raise InputError(f"rerender_weight must be a finite number > 0, got {self.rerender_weight!r}")
         if self.eval_workers < 1:
             raise InputError(f"eval_workers must be >= 1, got {self.eval_workers}")
-        # A repeated entry would be measured and reported twice under one name.
-        for name in ("pattern_counts", "noise_scales", "learned_seeds", "heuristics"):
-            values = list(getattr(self, name))
+        # A repeated entry would be measured and reported twice under one name (and a repeated
+        # seed would fake a seed spread of 0).
+        lists = {name: getattr(self, name) or () for name in ("pattern_counts", "noise_scales", "learned_seeds", "heuristics",
+                                                              "learned_counts", "rerender_counts")}
+        lists.update({f"learned_seeds_at.{count}": seeds for count, seeds in self.learned_seeds_at.items()})
+        for name, values in lists.items():
             if len(set(values)) != len(values):
-                raise InputError(f"{name} lists a value twice: {values}")
+                raise InputError(f"{name} lists a value twice: {list(values)}")
+        learned_counts = set(self.learned_pattern_counts()) | set(self.rerender_counts)
+        unused = sorted((set(self.learned_at) | set(self.learned_seeds_at)) - learned_counts)
+        if unused:
+            raise InputError(f"learned_at / learned_seeds_at set M = {', '.join(map(str, unused))}, where nothing is learned "
+                             f"(learned_counts {sorted(self.learned_pattern_counts())}, rerender_counts {list(self.rerender_counts)})")
+        for table in (self.learned, *self.learned_at.values()):
+            init = table.get("init")
+            if isinstance(init, str) and init.endswith((".npz", ".npy")) and not Path(init).is_file():
+                raise InputError(f"learned init pattern file not found: {init}")
         names = [item.name for item in self.external]
         if any(not name.strip() for name in names) or len(set(names)) != len(names):
             raise InputError(f"[[external]] names must be non-empty and distinct, got {names}")
@@ -222,13 +236,12 @@ class CompareConfig:
 
     def train_config(self, num_patterns: int, seed: int, rerender: bool = False) -> TrainConfig:
         """The TrainConfig of the learning run at M = ``num_patterns`` with ``seed``; ``rerender``
-        sets its re-rendering weight to ``rerender_weight`` (else the overrides' value, default 0)."""
+        sets its re-rendering weight to ``rerender_weight`` (else 0: normal loss only)."""
         values = {**self.learned, **self.learned_at.get(num_patterns, {})}
         values.update(num_patterns=num_patterns, seed=seed, rig=self.rig, scenes=list(self.train_scenes),
                       val_scenes=list(self.test_scenes), scene_size=list(self.scene_size), scene_seed=self.scene_seed,
                       noise_scale=self.default_noise)
-        if rerender:
-            values["rerender_weight"] = self.rerender_weight
+        values["rerender_weight"] = self.rerender_weight if rerender else 0.0
         return config_from_dict(TrainConfig, values, source=f"learned (M = {num_patterns})")
 
     def ps_config(self) -> PSConfig:
@@ -296,6 +309,9 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
         raise InputError(f"{source}: [[search]] and [[external]] must be arrays of tables") from None
     if "learned_at" in values:
         values["learned_at"] = _int_keys(values["learned_at"], "learned_at")
+        for count, table in values["learned_at"].items():
+            if not isinstance(table, dict):
+                raise InputError(f"{source}: learned_at.{count} must be a table of learning settings ([learned_at.{count}]), got {table!r}")
     for key in ("learned", "solver"):
         if not isinstance(values.get(key, {}), dict):
             raise InputError(f"{source}: {key} must be a table ([{key}])")
@@ -311,6 +327,15 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
             raise InputError(f"{source}: {key} must be a list of scene files or folders, got {paths!r}")
     if root is not None:
         values["external"] = tuple(dataclasses.replace(item, path=_resolve(item.path, root)) for item in values["external"])
+        # An init pattern file, like an external one (a family name stays a name).
+        def resolve_init(table: dict) -> dict:
+            init = table.get("init")
+            return {**table, "init": _resolve(init, root)} if isinstance(init, str) and init.endswith((".npz", ".npy")) else table
+
+        if "learned" in values:
+            values["learned"] = resolve_init(values["learned"])
+        if "learned_at" in values:
+            values["learned_at"] = {count: resolve_init(table) for count, table in values["learned_at"].items()}
         for key in ("train_scenes", "test_scenes"):
             if key in values:
                 values[key] = [_resolve(path, root) for path in values[key]]

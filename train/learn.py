@@ -374,6 +374,8 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
             state = {"config": resolved, "logits": logits.detach().clone(), "optimiser": optimiser.state_dict(), "scheduler": scheduler.state_dict(), "step": done, "val_history": val_history, "loss": loss_value}
             with atomic_path(checkpoint, suffix=".pt", sync=True) as tmp:
                 torch.save(state, tmp)
+    if val_scenes and not val_history:  # no step ran (steps = 0): validate the start patterns
+        val_history.append((start_step, _validate(logits, val_scenes, eval_settings, writer, start_step)))
     if writer is not None:
         writer.close()
     learned = logits_to_patterns(logits.detach()).numpy().astype(np.float32)

@@ -69,7 +69,7 @@ def aggregate_rows(results: dict, noise: float, specular_free: bool = False) -> 
     for (series, count), members in groups.items():
         first = members[0][0]
         row = {"series": series, "kind": first["kind"], "M": count, "seeds": len(members),
-               "label": "learned" + (f" (mean of {len(members)} seeds)" if len(members) > 1 else "") if first["kind"] == "learned" else first["label"]}
+               "label": "learned" if first["kind"] == "learned" else first["label"]}  # seeds differ per M: said per cell
         for key in _ROW_METRICS:
             row[key] = float(np.mean([evaluation[key] for _, evaluation in members]))
         row["mae_std"] = float(np.std([evaluation["mae"] for _, evaluation in members]))
@@ -467,6 +467,12 @@ def specular_free_section(results: dict, summary: dict, rows: list[dict]) -> lis
     return lines + [""]
 
 
+def pivot_cell(row: dict, key: str, digits: int) -> str:
+    """One cell of a method x M table: the row's value, and how many seeds it averages when more
+    than one (a series can average several seeds at one M and one at another)."""
+    return _fmt(row[key], digits) + (f" (mean of {row['seeds']} seeds)" if row["seeds"] > 1 else "")
+
+
 def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
     """Write ``report.md`` and the charts (``CHARTS``) into ``out_dir``.
 
@@ -513,7 +519,7 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
     reference = next((row for row in rows if row["kind"] == "reference"), None)
 
     def pivot(key: str, digits: int) -> str:
-        body = [[labels[s][1], labels[s][0]] + [_fmt(series_rows[s][m][key], digits) if m in series_rows[s] else "-" for m in counts] for s in ordered]
+        body = [[labels[s][1], labels[s][0]] + [pivot_cell(series_rows[s][m], key, digits) if m in series_rows[s] else "-" for m in counts] for s in ordered]
         return _table(["method", "kind"] + [f"M = {m}" for m in counts], body)
 
     lines += [f"## Accuracy and cost at noise scale {default:g}", "",
