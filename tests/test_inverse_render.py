@@ -133,14 +133,33 @@ def test_render_gradcheck_float64(tiny_rig):
 def test_lobe_sum_gradcheck_across_blocks(monkeypatch):
     monkeypatch.setattr(inverse_render, "_LOBE_BLOCK_ROWS", 4)
     generator = torch.Generator().manual_seed(6)
+    n_dot_h = torch.rand(9, 5, generator=generator, dtype=torch.float64)
     inputs = [
-        torch.rand(9, 5, generator=generator, dtype=torch.float64),
-        torch.rand(9, 5, generator=generator, dtype=torch.float64),
+        torch.rand(9, 5, generator=generator, dtype=torch.float64),  # n . l
+        n_dot_h.square(),
+        1 - n_dot_h.square(),  # independent inputs for the check; the renderer passes (1 - n.h)(1 + n.h)
         torch.rand(9, 2, generator=generator, dtype=torch.float64),
-        -torch.rand(2, generator=generator, dtype=torch.float64) * 0.9,
+        torch.rand(2, generator=generator, dtype=torch.float64) * 0.9 + 0.01,  # alpha^2
         torch.rand(2, generator=generator, dtype=torch.float64) * 0.4 + 0.05,
     ]
     assert torch.autograd.gradcheck(inverse_render._LobeSum.apply, [t.requires_grad_() for t in inputs])
+
+
+def test_sharp_lobes_in_float32_match_the_simulator():
+    """The renderer's float32 GGX lobe at the fit's lowest roughness agrees with the simulator's
+    (capture_sim.brdf) in float64: 1 + n.h^2 (alpha^2 - 1) cancelled near the peak (6% at 0.05)."""
+    from capture_sim.brdf import ggx_distribution
+
+    n_dot_h = 1 - torch.logspace(-9, -1, 200, dtype=torch.float64)
+    alpha = torch.tensor(0.05**2, dtype=torch.float64)
+    ones = torch.ones(200, 1, dtype=torch.float64)
+    for dtype in (torch.float32, torch.float64):
+        h = n_dot_h.to(dtype)[:, None]
+        lobe = inverse_render._LobeSum.apply(ones.to(dtype), h * h, (1 - h) * (1 + h), ones.to(dtype), (alpha * alpha).to(dtype)[None],
+                                             torch.zeros(1, dtype=dtype))
+        # D = a^2 / (pi t^2): the lobe sum is 1 / t^2 here; the truth at the n . h the dtype holds.
+        expected = ggx_distribution(h[:, 0].double(), alpha) * math.pi / alpha**2
+        assert torch.allclose(lobe[:, 0].double(), expected, rtol=1e-5 if dtype == torch.float32 else 1e-12)
 
 
 @pytest.mark.parametrize("bad", ["normals_shape", "negative_emission", "nan_normals", "roughness_range", "pixel_mismatch"])
@@ -587,7 +606,10 @@ def test_run_invrender_olat_writes_every_output(tmp_path, scene_file):
     from train.invrender_command import InvRenderConfig, run_invrender
 
     out = tmp_path / "run"
+    out.mkdir()
+    (out / "model_selection.png").write_bytes(b"an earlier --basis auto run's chart")
     result = run_invrender(InvRenderConfig(scene=scene_file, out=out, json=tmp_path / "result.json", basis="2", iterations=4))
+    assert not (out / "model_selection.png").exists()  # it would contradict this run's result.json
     for key in ("mae", "psnr", "ssim", "seconds", "J"):
         assert key in result and math.isfinite(result[key])
     assert result["J"] == 2 and result["specular"] and result["model_selection"] is None
@@ -618,6 +640,20 @@ def test_run_invrender_patterns_without_output_folder(tmp_path, scene_file):
     result = run_invrender(InvRenderConfig(scene=scene_file, patterns=str(pattern_file), basis="1", iterations=3, noise="off"))
     assert result["data"]["M"] == 4 and result["data"]["noise"] is None and result["J"] == 1
     assert math.isfinite(result["psnr"]) and result["data"]["exposure"] > 0
+
+
+def test_invrender_warns_when_no_pixel_is_solvable_and_never_overwrites_inputs(tmp_path, scene_file, capsys):
+    from train.cli import run
+
+    black = tmp_path / "out" / "weights.npy"  # identical (all-black) patterns, saved where --out writes weights.npy
+    black.parent.mkdir()
+    np.save(black, np.zeros((4, 9, 16, 3), dtype=np.float32))
+    assert run(["invrender", "--scene", str(scene_file), "--patterns", str(black), "--basis", "1", "--iterations", "2",
+                "--out", str(tmp_path / "out")]) == 2
+    assert "would destroy" in capsys.readouterr().err and np.load(black).shape == (4, 9, 16, 3)
+    assert run(["invrender", "--scene", str(scene_file), "--patterns", str(black), "--basis", "1", "--iterations", "2",
+                "--json", str(tmp_path / "r.json")]) == 0
+    assert "displex: warning: photometric stereo flags every pixel" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("bad", [dict(basis="9"), dict(basis="x"), dict(iterations=0), dict(noise="loud"), dict(geometry="sideways"),

@@ -307,9 +307,10 @@ def _import_frames(args) -> None:
 def _invrender(args) -> None:
     import json
 
-    from train.invrender_command import InvRenderConfig, run_invrender
+    from train.invrender_command import OUTPUT_FILES, InvRenderConfig, run_invrender
 
-    refuse_overwriting([("--json", args.json)], [("--scene", args.scene), ("--patterns file", None if args.patterns == "olat" else args.patterns)])
+    outputs = [("--json", args.json), *((f"--out file {name}", None if args.out is None else args.out / name) for name in OUTPUT_FILES)]
+    refuse_overwriting(outputs, [("--scene", args.scene), ("--patterns file", None if args.patterns == "olat" else args.patterns)])
     changes = dict(scene=args.scene, patterns=args.patterns, basis=args.basis, noise=args.noise, seed=args.seed, rig=args.rig, json=args.json, out=args.out,
                    threads=args.threads, exposure=args.exposure)
     if args.iterations is not None:

@@ -21,6 +21,7 @@ import math
 import shutil
 import tempfile
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -28,7 +29,7 @@ import numpy as np
 import torch
 
 from capture_sim.atomic import save_npy, write_json
-from capture_sim.errors import InputError, check_seed
+from capture_sim.errors import DisplexWarning, InputError, check_seed
 from capture_sim.geometry import pixel_rays
 from capture_sim.png import write_png
 from capture_sim.rig import DEFAULT_RIG, load_rig
@@ -256,6 +257,11 @@ def _run(config: InvRenderConfig) -> dict:
     return output
 
 
+OUTPUT_FILES = ("normals.npy", "normals.png", "normals_figure.png", "weights.npy", "weights.png", "brdf_spheres.png", "relit.png",
+                "model_selection.png", "config.json", "result.json")
+"""Files ``--out`` receives (checked against the inputs before any work)."""
+
+
 def _fit_and_evaluate(config: InvRenderConfig, scene, pixels, split, data: _Data, grid: dict, board: _TensorBoard,
                       timings: dict, start: float, cpu_start: float) -> dict:
     """Initial estimate, light model, basis selection, final fit, evaluation and outputs."""
@@ -268,6 +274,10 @@ def _fit_and_evaluate(config: InvRenderConfig, scene, pixels, split, data: _Data
     tick = time.perf_counter()
     initial = problem.initial_estimate()
     timings["initial_estimate"] = time.perf_counter() - tick
+    if not bool(initial.valid.any()):
+        # The fit would start from filled-in defaults, and the light-model test compares nothing.
+        warnings.warn(f"photometric stereo flags every pixel of {scene.name} invalid under these captures (too few, identical, "
+                      "dark or saturated): the fit starts from default normals and its results say little", DisplexWarning, stacklevel=2)
 
     # ---- light model: near field unless far field is indistinguishable
     tick = time.perf_counter()
@@ -389,6 +399,8 @@ def _write_outputs(out: Path, output: dict, config, result: InverseRenderResult,
     _relit_figure(out / "relit.png", relit, data.test_truth, split.test, transport, output, mask_box(scene.mask))
     if selection is not None:
         _selection_chart(out / "model_selection.png", selection, config.selection)
+    else:  # an earlier --basis auto run's chart would contradict this result.json
+        (out / "model_selection.png").unlink(missing_ok=True)
     write_json(out / "config.json", config.to_dict())
     write_json(out / "result.json", output)
 
