@@ -196,7 +196,9 @@ def scene_paths(paths) -> list[Path]:
         if entry.is_dir():
             files = sorted(entry.glob("*.npz"))
             if not files:
-                raise InputError(f"no scene .npz files in folder {entry}")
+                splits = [split for split in ("train", "test") if any((entry / split).glob("*.npz"))]
+                hint = f"; a synthesised scene set: pass {' or '.join(str(entry / split) for split in splits)}" if splits else ""
+                raise InputError(f"no scene .npz files in folder {entry}{hint}")
             found.extend(files)
         elif entry.is_file():
             found.append(entry)

@@ -201,6 +201,14 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
          "grows with the square of the parameter count"),
         (["train", "--rerender-weight", "1e38", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "r.npz")], "learning diverged at step 1"),
     ]
+    # Output folders that are files, and the root of a synthesised set where a split is meant.
+    cases += [
+        (["evaluate", "--patterns", "olat", "--scenes", str(scene_file), "--out", str(good)], "is a file; evaluate writes a folder"),
+        (["scenes", "synth", "--out", str(good), "--size", "8x10"], "is a file; scenes synth writes a folder"),
+        (["evaluate", "--patterns", "olat", "--scenes", str(tmp_path / "set")], f"a synthesised scene set: pass {tmp_path / 'set' / 'test'}"),
+    ]
+    (tmp_path / "set" / "test").mkdir(parents=True)
+    (tmp_path / "set" / "test" / scene_file.name).write_bytes(scene_file.read_bytes())
     # simulate into a folder where one of its outputs is a folder: refused before writing any.
     cases.append((["simulate", "--scene", str(scene_file), "--patterns", str(good), "--out", str(tmp_path / "sim")],
                   "contact_sheet.png: it exists and is not a regular file"))
@@ -282,6 +290,7 @@ def test_evaluate_json_matches_saved_normal_maps(tmp_path, scene_file):
     out, report = tmp_path / "eval", tmp_path / "eval.json"
     assert run(["evaluate", "--scenes", str(scene_file), "--patterns", str(patterns), "--json", str(report), "--out", str(out)]) == 0
     document = json.loads(report.read_text())
+    assert document["seed"] == 0 and document["exposure"] == "rig" and document["scene_files"] == [str(scene_file)]
     row = document["scenes"][0]
     assert {"name", "mae", "median", "under_5", "under_10", "under_20", "under_30", "invalid_fraction", "seconds"} <= set(row)
     assert {"poor_fit", "grazing", "ill_conditioned"} <= set(row["flagged"]) and all(0 <= share <= 1 for share in row["flagged"].values())

@@ -366,3 +366,19 @@ def test_relative_learned_init_file_resolves_against_the_repository(scenes):
     assert Path(config.learned["init"]) == REPO / "patterns" / "data" / "ddps" / "initial_tri_random_2.npy"
     assert config.learned_at[2]["init"] == "tri_gradient"  # a family name stays a name
     assert config.train_config(2, 0).rerender_weight == 0.0 and config.train_config(2, 0, rerender=True).rerender_weight > 0
+
+
+def test_cost_chart_labels_its_axis_when_every_cost_is_below_a_second():
+    """A log axis inside one decade has no major tick: its minor ticks carry the numbers."""
+    from train.report import chart_mae_vs_cost
+
+    rows = aggregate_rows(fake_results(), 0.5)
+    for row, seconds in zip(rows, (0.15, 0.23, 0.4, 0.6, 0.86)):
+        row["compute_seconds"] = seconds
+    fig = chart_mae_vs_cost(rows, "compute_seconds", "compute (s)", "speed", "caption")
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    labels = [t.get_text() for t in (*ax.xaxis.get_majorticklabels(), *ax.xaxis.get_minorticklabels()) if t.get_text()]
+    low, high = ax.get_xlim()
+    shown = [float(text) for text in labels if low <= float(text) <= high]
+    assert {0.2, 0.5} <= set(shown) and not {0.3, 0.4, 0.6} & set(shown), labels

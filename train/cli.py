@@ -199,8 +199,10 @@ def build_parser() -> argparse.ArgumentParser:
 def _evaluate(args) -> None:
     from train.evaluate_command import EvaluateConfig, run_evaluate
 
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        raise InputError(f"--out {args.out} is a file; evaluate writes a folder")
     refuse_overwriting([("--json", args.json)], [("--patterns file", None if args.patterns == "olat" else args.patterns),
-                                                 *(("scene", scene) for scene in args.scenes)])
+                                                 *_scene_files(args.scenes)])
     config = EvaluateConfig(tuple(args.scenes), args.patterns, args.method, args.noise, args.exposure, args.rig, args.seed, args.json, args.out)
     document = run_evaluate(config)
     for row in document["scenes"]:
@@ -356,6 +358,8 @@ def _scenes_synth(args) -> None:
     from capture_sim.rig import load_rig
     from capture_sim.synth import write_scene_set
 
+    if args.out.exists() and not args.out.is_dir():
+        raise InputError(f"--out {args.out} is a file; scenes synth writes a folder")
     index_path = write_scene_set(args.out, rig=load_rig(args.rig), height=args.size[0], width=args.size[1], seed=args.seed, cast_shadows=args.cast_shadows)
     print(f"wrote the scene set to {args.out} (index: {index_path})")
 

@@ -78,6 +78,9 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
         "method": config.method,
         "noise": config.noise,
         "rig": rig.name,
+        "exposure": str(config.exposure),
+        "seed": config.seed,
+        "scene_files": [str(scene.meta.get("file", scene.name)) for scene in scenes],
         "scenes": rows,
         "mean_mae": float(np.mean([row["mae"] for row in rows])),
     }

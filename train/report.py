@@ -239,6 +239,23 @@ def chart_mae_vs_patterns(rows: list[dict], caption: str):
     return fig
 
 
+def _plain_tick(value: float, _position=None) -> str:
+    return f"{value:g}"
+
+
+def _leading_one_two_five(value: float, _position=None) -> str:
+    # The leading significant digit ("2e-01" for 0.2): the first character of f"{value:g}" is 0 below 1.
+    return f"{value:g}" if f"{value:.0e}"[0] in "125" else ""
+
+
+def plain_log_ticks(axis) -> None:
+    """Plain numbers (0.2, 0.5, 1, 2) on a log ``axis`` instead of powers of ten, the minor ticks
+    labelled at 1, 2 and 5 times a power of ten only: a range inside one decade has no major tick,
+    and labelling every minor tick makes the labels collide."""
+    axis.set_major_formatter(matplotlib.ticker.FuncFormatter(_plain_tick))
+    axis.set_minor_formatter(matplotlib.ticker.FuncFormatter(_leading_one_two_five))
+
+
 def chart_mae_vs_cost(rows: list[dict], key: str, xlabel: str, title: str, caption: str):
     """Scatter of MAE (deg) against a cost per method and M (log x axis), labelled by M."""
     fig, ax = plt.subplots(figsize=(9.0, 4.8))
@@ -253,9 +270,7 @@ def chart_mae_vs_cost(rows: list[dict], key: str, xlabel: str, title: str, capti
             for x, y, row in zip(xs, ys, values):
                 ax.annotate(f"M={row['M']}", (x, y), textcoords="offset points", xytext=(4, 3), fontsize=6)
     ax.set_xscale("log")
-    # Plain numbers (0.2, 0.5, 1, 2 s) instead of powers of ten on the log axis.
-    ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}"))
-    ax.xaxis.set_minor_formatter(matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}" if str(f"{value:g}")[0] in "25" else ""))
+    plain_log_ticks(ax.xaxis)
     ax.set_xlabel(xlabel)
     ax.set_ylabel("mean angular error (deg)")
     ax.set_title(title)
@@ -324,10 +339,8 @@ def chart_specular_free(rows: list[dict], free_rows: list[dict], caption: str):
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_ylim(bottom=max(min((row["mae"] for row in rows), default=low), 1e-2) / 1.5)  # the diagonal may leave the plot below
-    plain = matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}")
-    ax.xaxis.set_major_formatter(plain)
-    ax.yaxis.set_major_formatter(plain)
-    ax.yaxis.set_minor_formatter(plain)  # the y range may span less than a decade
+    plain_log_ticks(ax.xaxis)
+    plain_log_ticks(ax.yaxis)
     ax.set_xlabel("mean angular error without specular reflection (deg)")
     ax.set_ylabel("mean angular error on the test scenes (deg)")
     ax.set_title("How much of each method's error is specular reflection")
