@@ -137,7 +137,7 @@ def validate_scene(scene: Scene) -> None:
             raise InputError(f"{name}: normals inside the mask must be unit vectors")
         # Grazing normals may lean slightly past n_z = 0; a majority facing away is a flipped convention.
         if inside.size and float((inside[:, 2] > 0).mean()) > 0.5:
-            raise InputError(f"{name}: most normals face away from the camera (n_z > 0); DESIGN section 2 wants n_z < 0")
+            raise InputError(f"{name}: most normals face away from the camera (n_z > 0); visible normals have n_z < 0 (README: Conventions)")
     if scene.depth is not None:
         check_array(f"{name}: depth", scene.depth, (height, width))
         if bool((scene.depth[scene.mask] <= 0).any()):
@@ -168,7 +168,7 @@ def load_scene(path: str | Path) -> Scene:
     path = Path(path)
     arrays = read_arrays(path, "scene", keys=(*_ARRAY_KEYS, "meta"))
     if isinstance(arrays, np.ndarray):
-        raise InputError(f"{path}: a plain .npy array, but a scene is an .npz of named arrays (DESIGN section 7)")
+        raise InputError(f"{path}: a plain .npy array, but a scene is an .npz of named arrays (README: Scene files)")
     meta = read_meta(arrays, path, "scene")
     arrays.pop("meta", None)
     for required in ("olat", "mask", "K_cam", "light_positions"):

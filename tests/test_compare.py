@@ -168,6 +168,8 @@ def test_summary_tables_against_plain_computation():
     # The label is the series' at every M; the seed count goes with each cell of the tables.
     assert rows["learned"]["label"] == "learned" and pivot_cell(rows["learned"], "mae", 2) == "18.00 (mean of 2 seeds)"
     assert pivot_cell(rows["a"], "mae", 2) == "20.00"
+    assert pivot_cell(dict(rows["a"], invalid_fraction=1.0), "mae", 2) == "20.00 (all invalid)"
+    assert pivot_cell(dict(rows["a"], invalid_fraction=1.0), "compute_seconds", 1) == "0.1"
     summary = summary_tables(results)
     by_noise = {c["noise_scale"]: c for c in summary["learned_vs_heuristic"]}
     assert by_noise[0.5]["best_heuristic"] == "a" and by_noise[0.5]["ratio"] == pytest.approx(8.5 / 10.0)

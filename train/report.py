@@ -482,8 +482,10 @@ def specular_free_section(results: dict, summary: dict, rows: list[dict]) -> lis
 
 def pivot_cell(row: dict, key: str, digits: int) -> str:
     """One cell of a method x M table: the row's value, and how many seeds it averages when more
-    than one (a series can average several seeds at one M and one at another)."""
-    return _fmt(row[key], digits) + (f" (mean of {row['seeds']} seeds)" if row["seeds"] > 1 else "")
+    than one (a series can average several seeds at one M and one at another). An error where
+    every pixel was invalid is marked: it measures the default normal, not a reconstruction."""
+    note = " (all invalid)" if key in ("mae", "median") and row.get("invalid_fraction", 0.0) >= 1.0 else ""
+    return _fmt(row[key], digits) + note + (f" (mean of {row['seeds']} seeds)" if row["seeds"] > 1 else "")
 
 
 def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
