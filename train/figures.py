@@ -19,7 +19,7 @@ def for_display(linear: np.ndarray) -> np.ndarray:
 
 
 def normal_to_rgb(normal: np.ndarray) -> np.ndarray:
-    """Unit normals (..., 3) in the camera frame to RGB (x right -> red, y down -> green, -z -> blue)."""
+    """Unit normals (..., 3) in the camera frame to RGB ((x, -y, -z) + 1) / 2: red right, green up, blue towards the camera."""
     colour = np.stack([normal[..., 0], -normal[..., 1], -normal[..., 2]], axis=-1)
     return np.clip(0.5 * (colour + 1.0), 0.0, 1.0)
 
