@@ -44,6 +44,13 @@ def check_replaceable(path: str | Path) -> None:
         raise InputError(f"cannot write {path}: it exists and is not a regular file")
 
 
+def check_output_folder(path: str | Path, command: str) -> None:
+    """Raise ``InputError`` if a command's output folder ``path`` exists as a file (before any work:
+    the first write into it would fail with a misleading 'not a directory')."""
+    if Path(path).exists() and not Path(path).is_dir():
+        raise InputError(f"--out {path} is a file; {command} writes a folder")
+
+
 @contextmanager
 def atomic_path(path: str | Path, suffix: str = "", sync: bool = False):
     """Yield a temporary path next to ``path``; on success it replaces ``path`` in one rename.

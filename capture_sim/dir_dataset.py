@@ -39,7 +39,7 @@ from PIL import Image
 
 from capture_sim.array_files import read_arrays
 from capture_sim.errors import InputError, check_array
-from capture_sim.png import decode_png
+from capture_sim.png import decode_png, png_format
 from capture_sim.rig import Rig
 from capture_sim.scene import MAX_DEPTH_M, Scene
 
@@ -248,19 +248,10 @@ def _check_light_table(path: Path, num_lights: int) -> None:
         raise InputError(f"{path}: expected {num_lights} finite rows of 3 numbers, got shape {table.shape}")
 
 
-def _png_header(path: Path) -> tuple[int, int] | None:
-    """(bit depth, colour type) from a PNG file's header, or None for a file that is not a PNG."""
-    with open(path, "rb") as file:
-        start = file.read(26)
-    if len(start) < 26 or not start.startswith(b"\x89PNG\r\n\x1a\n") or start[12:16] != b"IHDR":
-        return None
-    return start[24], start[25]
-
-
 def _read_image(path: Path) -> np.ndarray:
     """(H, W, 3) float64 image in [0, 1] from an 8-bit or 16-bit PNG (grey is copied to RGB)."""
     try:
-        header = _png_header(path)
+        header = png_format(path)
     except OSError as err:
         raise InputError(f"{path}: not a readable image ({err.strerror})") from None
     if header is not None and header[0] == 16 and header[1] in (2, 6):

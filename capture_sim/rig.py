@@ -311,9 +311,11 @@ def panel_size(panel_pixels, name: str = "panel_pixels") -> tuple[int, int]:
 
 def camera_exposure_ms(value) -> float:
     """A rig's ``camera.exposure_ms`` (capture time per image) as a positive finite float."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
-        raise InputError(f"camera exposure_ms must be a positive number of milliseconds, got {value!r}")
-    return float(value)
+    expected = "a positive number of milliseconds"
+    exposure_ms = _number("camera exposure_ms", value, expected)
+    if not (math.isfinite(exposure_ms) and exposure_ms > 0):
+        raise InputError(f"camera exposure_ms must be {expected}, got {value!r}")
+    return exposure_ms
 
 
 def _number(name: str, value, expected: str = "a number") -> float:

@@ -175,8 +175,7 @@ def load_scene(path: str | Path) -> Scene:
         if required not in arrays:
             raise InputError(f"{path}: scene is missing required array '{required}'")
     # Native byte order (files written on big-endian machines or by other tools), same values.
-    arrays = {key: value.astype(value.dtype.newbyteorder("=")) if value.dtype.byteorder == (">" if np.little_endian else "<") else value
-              for key, value in arrays.items()}
+    arrays = {key: value if value.dtype.isnative else value.astype(value.dtype.newbyteorder("=")) for key, value in arrays.items()}
     meta.setdefault("name", path.stem)
     meta["file"] = str(path)  # in memory only: outputs are named after the file the user gave
     return Scene(meta=meta, **arrays)

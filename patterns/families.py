@@ -566,8 +566,8 @@ class TriComplementary(Family):
                 # G faces R's opposite direction: the negated offset puts its edge on R's, so the
                 # halves stay complementary where the tie rule would shift each edge its own way
                 # (an odd number of cells across the split).
-                offsets[channel] = -offsets["r"] if channel == "g" else _default_split_offset(angle, rows, cols)
-                offset = offsets[channel]
+                offset = -offsets["r"] if channel == "g" else _default_split_offset(angle, rows, cols)
+                offsets[channel] = offset
                 params.append(Parameter(f"pair{j}_{channel}_angle_deg", -360.0, 360.0, angle))
                 params.append(Parameter(f"pair{j}_{channel}_offset", -size, size, offset))
         return params

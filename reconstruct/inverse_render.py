@@ -214,10 +214,10 @@ class _LobeSum(torch.autograd.Function):
         alpha2s, ks = alpha2.tolist(), k.tolist()
         for start in range(0, grad.shape[0], _LOBE_BLOCK_ROWS):
             rows = slice(start, start + _LOBE_BLOCK_ROWS)
-            n_dot_l_rows, n_dot_h2_rows, grad_rows = n_dot_l_pos[rows], n_dot_h2[rows], grad[rows]
+            n_dot_l_rows, n_dot_h2_rows, sin2_rows, grad_rows = n_dot_l_pos[rows], n_dot_h2[rows], sin2[rows], grad[rows]
             for j, (alpha2_j, k_j) in enumerate(zip(alpha2s, ks)):
                 inverse_t = n_dot_h2_rows * alpha2_j
-                inverse_t += sin2[rows]
+                inverse_t += sin2_rows
                 inverse_t.reciprocal_()
                 inverse_u = n_dot_l_rows * (1.0 - k_j)
                 inverse_u += k_j

@@ -11,7 +11,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from capture_sim.atomic import refuse_overwriting
+from capture_sim.atomic import check_output_folder, refuse_overwriting
 from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import DEFAULT_RIG
 
@@ -199,8 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
 def _evaluate(args) -> None:
     from train.evaluate_command import EvaluateConfig, run_evaluate
 
-    if args.out is not None and args.out.exists() and not args.out.is_dir():
-        raise InputError(f"--out {args.out} is a file; evaluate writes a folder")
+    if args.out is not None:
+        check_output_folder(args.out, "evaluate")
     refuse_overwriting([("--json", args.json)], [("--patterns file", None if args.patterns == "olat" else args.patterns),
                                                  *_scene_files(args.scenes)])
     config = EvaluateConfig(tuple(args.scenes), args.patterns, args.method, args.noise, args.exposure, args.rig, args.seed, args.json, args.out)
@@ -239,10 +239,11 @@ def _train(args) -> None:
 def _scene_files(*groups):
     """("scene", file) input pairs for ``refuse_overwriting`` from lists of scene paths (files, or
     folders, whose .npz files are what an output must not replace)."""
+    from capture_sim.scene import scene_paths
+
     for paths in groups:
-        for entry in map(Path, paths or ()):
-            for scene in sorted(entry.glob("*.npz")) if entry.is_dir() else [entry]:
-                yield "scene", scene
+        for scene in scene_paths(paths or ()):
+            yield "scene", scene
 
 
 def _train_interrupted(args) -> str:
@@ -358,8 +359,7 @@ def _scenes_synth(args) -> None:
     from capture_sim.rig import load_rig
     from capture_sim.synth import write_scene_set
 
-    if args.out.exists() and not args.out.is_dir():
-        raise InputError(f"--out {args.out} is a file; scenes synth writes a folder")
+    check_output_folder(args.out, "scenes synth")
     index_path = write_scene_set(args.out, rig=load_rig(args.rig), height=args.size[0], width=args.size[1], seed=args.seed, cast_shadows=args.cast_shadows)
     print(f"wrote the scene set to {args.out} (index: {index_path})")
 

@@ -38,7 +38,7 @@ from patterns.io import load_patterns, save_patterns
 from train.config_io import config_from_dict, config_to_dict, json_value
 from train.evaluate import EvalSettings, evaluate_scene
 from reconstruct.photometric_stereo import PSConfig
-from train.learn import TrainConfig, train_patterns
+from train.learn import TrainConfig, names_pattern_file, train_patterns
 from train.search import SearchConfig, run_search
 from train.scene_pixels import fixed_pixel_subsets, scene_pixels
 from train.scene_sets import resolve_scenes
@@ -183,9 +183,8 @@ class CompareConfig:
             raise InputError(f"learned_at / learned_seeds_at set M = {', '.join(map(str, unused))}, where nothing is learned "
                              f"(learned_counts {sorted(self.learned_pattern_counts())}, rerender_counts {list(self.rerender_counts)})")
         for table in (self.learned, *self.learned_at.values()):
-            init = table.get("init")
-            if isinstance(init, str) and init.endswith((".npz", ".npy")) and not Path(init).is_file():
-                raise InputError(f"learned init pattern file not found: {init}")
+            if names_pattern_file(table.get("init")) and not Path(table["init"]).is_file():
+                raise InputError(f"learned init pattern file not found: {table['init']}")
         names = [item.name for item in self.external]
         if any(not name.strip() for name in names) or len(set(names)) != len(names):
             raise InputError(f"[[external]] names must be non-empty and distinct, got {names}")
@@ -329,8 +328,7 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
         values["external"] = tuple(dataclasses.replace(item, path=_resolve(item.path, root)) for item in values["external"])
         # An init pattern file, like an external one (a family name stays a name).
         def resolve_init(table: dict) -> dict:
-            init = table.get("init")
-            return {**table, "init": _resolve(init, root)} if isinstance(init, str) and init.endswith((".npz", ".npy")) else table
+            return {**table, "init": _resolve(table["init"], root)} if names_pattern_file(table.get("init")) else table
 
         if "learned" in values:
             values["learned"] = resolve_init(values["learned"])

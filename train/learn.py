@@ -132,8 +132,14 @@ class TrainConfig:
             raise InputError(f"val_every must be >= 0 (0 = only at the end), got {self.val_every}")
         check_seed("seed", self.seed)
         check_seed("scene_seed", self.scene_seed)
-        if self.init != "auto" and self.init not in FAMILIES and Path(self.init).suffix not in (".npz", ".npy"):
+        if self.init != "auto" and self.init not in FAMILIES and not names_pattern_file(self.init):
             raise InputError(f"init must be 'auto', a family ({', '.join(FAMILIES)}) or a pattern file, got {self.init!r}")
+
+
+def names_pattern_file(init) -> bool:
+    """Whether a ``TrainConfig.init`` value names a pattern file (.npz or .npy) rather than 'auto'
+    or a family."""
+    return isinstance(init, str) and Path(init).suffix in (".npz", ".npy")
 
 
 def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
@@ -147,7 +153,7 @@ def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
     if config.init in FAMILIES:
         return make_patterns(config.init, config.num_patterns, rows=rows, cols=cols, seed=config.seed).float()
     path = Path(config.init)
-    if path.suffix not in (".npz", ".npy"):
+    if not names_pattern_file(config.init):
         raise InputError(f"--init must be a family ({', '.join(FAMILIES)}) or a pattern file, got {config.init!r}")
     values, _ = load_patterns(path)
     check_patterns_match_rig(values, rows, cols)

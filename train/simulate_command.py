@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from capture_sim.atomic import refuse_overwriting, save_npy, write_json
+from capture_sim.atomic import check_output_folder, refuse_overwriting, save_npy, write_json
 from capture_sim.errors import InputError, check_seed
 from capture_sim.png import write_png
 from capture_sim.rig import DEFAULT_RIG, Rig, load_rig
@@ -78,8 +78,7 @@ def resolve_exposure(exposure, patterns: torch.Tensor, scene: Scene, rig: Rig) -
 def run_simulate(config: SimulateConfig) -> dict:
     """Simulate, write ``captures.npy``, 16-bit PNGs, ``contact_sheet.png`` and ``meta.json``; return the meta."""
     check_seed("--seed", config.seed)
-    if Path(config.out).exists() and not Path(config.out).is_dir():
-        raise InputError(f"--out {config.out} is a file; simulate writes a folder")
+    check_output_folder(config.out, "simulate")
     scene = load_scene(config.scene)
     rig = rig_for_scene(load_rig(config.rig), scene)
     pattern_values, pattern_meta = load_patterns(config.patterns)
