@@ -359,7 +359,7 @@ class GroupedOlat(Family):
     """
 
     name = "grouped_olat"
-    summary = "a 3 x 3 block per pattern (corner blocks first, then spread out)"
+    summary = "a 3 x 3 block per pattern (corner blocks first, then spread out); M = 1..(R - 2)(C - 2)"
 
     @staticmethod
     def _block(rows, cols):

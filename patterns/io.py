@@ -41,18 +41,17 @@ def validate_patterns(patterns, name: str = "patterns") -> np.ndarray:
 
 
 def check_pattern_output(path: str | Path) -> None:
-    """Refuse a pattern output named .npy: a pattern file is an .npz archive (values and
-    provenance), which numpy and other tools would misread under a .npy name."""
-    if Path(path).suffix.lower() == ".npy":
-        raise InputError(f"pattern files are written as .npz (values and provenance), not .npy: {path}")
+    """Refuse a pattern output not named .npz: a pattern file is an .npz archive (values and
+    provenance), which numpy would misread under a .npy name and image tools under a .png one."""
+    if Path(path).suffix.lower() != ".npz":
+        raise InputError(f"pattern files are written as .npz archives (values and provenance): name the output *.npz, got {path}")
 
 
 def save_patterns(path: str | Path, patterns, meta: dict | None = None) -> None:
     """Write a pattern file (.npz) atomically.
 
     Args:
-        path: output file; written as .npz whatever its suffix, except that a .npy name is refused
-            (``check_pattern_output``).
+        path: output file, named .npz (``check_pattern_output``).
         patterns: (M, R, C, 3) display set values in [0, 1] (numpy array or torch tensor).
         meta: JSON-serialisable description: family, parameters, rig, how the patterns were made.
     """

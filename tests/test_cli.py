@@ -190,11 +190,14 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
           str(tmp_path / "twin" / scene_file.name)], "would destroy"),
         (["search", "--maxeval", "2", "--scenes", str(tmp_path / "twin"), "--out", str(tmp_path / "twin" / scene_file.name)], "would destroy"),
         (["train", "--out", str(good)], "pattern files are written as .npz"),  # a .npy name, refused before learning
+        (["import-frames", str(tmp_path), "--out", str(tmp_path / "p.png")], "name the output *.npz"),
         (["bench", "ps", "--sweep", "--json", str(tmp_path / "sweep.png")], "would destroy"),
         # An output path that is a folder fails before any work (train used to learn first).
-        (["train", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "twin")], "exists and is not a regular file"),
+        (["train", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "folder.npz")], "exists and is not a regular file"),
         (["evaluate", "--patterns", "olat", "--scenes", str(scene_file), str(tmp_path / "twin" / scene_file.name), "--out", str(tmp_path / "e")],
          "share the file name"),
+        (["evaluate", "--patterns", "olat", "--scenes", str(scene_file), str(scene_file), "--out", str(tmp_path / "e")],
+         f"scene file {scene_file} is given twice"),
         (["train", "--M", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "t.npz")], "init 'auto' starts M = 1"),
         (["import-frames", str(good), "--out", str(tmp_path / "i.npz")], "not a folder of exported frames"),
         (["search", "--family", "tri_random", "--M", "50", "--maxeval", "2", "--scenes", str(scene_file), "--out", str(tmp_path / "s.npz")],
@@ -214,6 +217,7 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
                   "contact_sheet.png: it exists and is not a regular file"))
     (tmp_path / "sim" / "contact_sheet.png").mkdir(parents=True)
     save_patterns(good_npz, np.load(good))
+    (tmp_path / "folder.npz").mkdir()
     (tmp_path / "twin").mkdir()
     (tmp_path / "twin" / scene_file.name).write_bytes(scene_file.read_bytes())
     for argv, message in cases:
@@ -221,7 +225,7 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         assert run(argv) == 2, argv
         err = capsys.readouterr().err.strip().splitlines()[-1]  # after any progress bar's line
         assert err.startswith("displex: error:") and message in err, (argv, err)
-    assert not (tmp_path / "twin.ckpt.pt").exists()  # refused before learning wrote a checkpoint
+    assert not (tmp_path / "folder.ckpt.pt").exists()  # refused before learning wrote a checkpoint
     assert sorted(path.name for path in (tmp_path / "sim").iterdir()) == ["contact_sheet.png"]
 
 
@@ -406,3 +410,11 @@ def test_errors_about_flag_values_name_the_flag(tmp_path, capsys):
         assert run([*command, "--out", str(tmp_path / "p.npz")]) == 2
         err = capsys.readouterr().err
         assert err.startswith("displex: error:") and f"(set by {flag})" in err and err.count("\n") == 1, err
+
+
+def test_version_names_the_installed_package(capsys):
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as stop:
+        run(["--version"])
+    assert stop.value.code == 0 and capsys.readouterr().out.strip() == f"displex {version('displex')}"

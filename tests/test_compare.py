@@ -384,3 +384,20 @@ def test_cost_chart_labels_its_axis_when_every_cost_is_below_a_second():
     low, high = ax.get_xlim()
     shown = [float(text) for text in labels if low <= float(text) <= high]
     assert {0.2, 0.5} <= set(shown) and not {0.3, 0.4, 0.6} & set(shown), labels
+
+
+def test_cost_chart_crosses_out_all_invalid_methods_and_merges_coincident_labels():
+    """A method whose every pixel is invalid gets a labelled cross; methods on one point share one "M=" label."""
+    from train.report import ALL_INVALID_LABEL, chart_mae_vs_cost
+
+    rows = aggregate_rows(fake_results(), 0.5)
+    rows.append(dict(next(row for row in rows if row["series"] == "s"), series="s2", label="s2"))  # the search's twin
+    rows.append(dict(rows[0], series="dead", label="dead", kind="external", mae=60.0, invalid_fraction=1.0))
+    fig = chart_mae_vs_cost(rows, "compute_seconds", "compute (s)", "speed", "caption")
+    ax = fig.axes[0]
+    crosses = [line for line in ax.get_lines() if line.get_label() == ALL_INVALID_LABEL]
+    assert len(crosses) == 1 and list(crosses[0].get_ydata()) == [60.0]
+    annotations = [child.get_text() for child in ax.texts]
+    # learned and the two searches and the dead method all sit at 0.1 s; the search twins coincide.
+    assert sorted(annotations) == ["M=2", "M=2", "M=2"], annotations
+    assert ALL_INVALID_LABEL in [text.get_text() for text in ax.get_legend().get_texts()]

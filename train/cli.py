@@ -49,8 +49,7 @@ def _path(text: str) -> Path:
 
 
 def _pattern_output(text: str) -> Path:
-    """A pattern file to write: .npz (a .npy name would hold an .npz archive, which numpy and other
-    tools would misread)."""
+    """A pattern file to write, named .npz (``patterns.io.check_pattern_output``)."""
     from patterns.io import check_pattern_output
 
     path = _path(text)
@@ -65,12 +64,22 @@ RERUN_REUSES_RUNS = "rerun the same command to reuse its finished learning and s
 """What an interrupted compare or demo tells the user."""
 
 
+def _installed_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("displex")
+    except PackageNotFoundError:  # run from a checkout that was never installed
+        return "(not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="displex",
         description="Design illumination patterns for display-camera photometric stereo: synthesise scenes, "
         "simulate captures, reconstruct, learn and search patterns, export them, compare methods.",
     )
+    parser.add_argument("--version", action="version", version=f"displex {_installed_version()}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     scenes = commands.add_parser("scenes", help="synthetic scene sets").add_subparsers(dest="scenes_command", required=True)

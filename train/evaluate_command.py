@@ -14,7 +14,7 @@ from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import DEFAULT_RIG, load_rig
 from patterns.io import check_patterns_match_rig, load_patterns
 from train.evaluate import EvalSettings, error_map, evaluate_scene, masked_map
-from train.figures import image_grid, normal_to_rgb, save_figure
+from train.figures import image_grid, normal_panel, save_figure
 from train.scene_pixels import scene_pixels
 from train.scene_sets import resolve_scenes
 from train.simulate_command import parse_exposure
@@ -57,10 +57,8 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
         patterns = torch.as_tensor(values)
     settings = EvalSettings(method=config.method, noise_scale=0.0 if config.noise == "off" else 1.0, exposure=parse_exposure(str(config.exposure), rig), seed=config.seed)
     scenes = resolve_scenes(config.scenes, "test", rig)
-    stems = [Path(scene.meta.get("file", scene.name)).stem for scene in scenes]
-    repeated = sorted({stem for stem in stems if stems.count(stem) > 1})
-    if config.out is not None and repeated:
-        raise InputError(f"scenes from different folders share the file name(s) {', '.join(repeated)}: their outputs in --out would overwrite each other")
+    if config.out is not None:
+        _refuse_clashing_outputs([Path(scene.meta.get("file", scene.name)) for scene in scenes])
     rows, panels = [], []
     for index, scene in enumerate(tqdm(scenes, desc="evaluating", unit="scene", disable=not progress)):
         pixels = scene_pixels(scene, rig, require_normals=True)
@@ -92,6 +90,18 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
     return document
 
 
+def _refuse_clashing_outputs(files: list[Path]) -> None:
+    """Refuse scene files whose per-scene outputs (named by the file stem) would overwrite each other."""
+    seen: dict = {}
+    for file in files:
+        earlier = seen.setdefault(file.stem, file)
+        if earlier is file:
+            continue
+        if earlier.resolve() == file.resolve():
+            raise InputError(f"the scene file {file} is given twice (directly or through its folder)")
+        raise InputError(f"scenes from different folders share the file name {file.stem}: their outputs in --out would overwrite each other")
+
+
 ERROR_MAP_MAX_DEG = 45.0
 """Error maps saturate here (degrees), in the per-scene figures and the summary."""
 
@@ -107,35 +117,41 @@ def _write_scene_outputs(out: Path, stem: str, pixels, evaluation, residual_thre
     residual = masked_map(pixels, evaluation.result.residual)
     save_npy(out / f"{stem}_residual.npy", np.nan_to_num(residual, nan=1.0))
     errors = error_map(pixels, evaluation.result)
+    estimate = normal_panel(normal, pixels.mask, valid)
     fig = image_grid(
-        [normal_to_rgb(normal), normal_to_rgb(truth), errors, residual],
-        ["estimated normals", "ground truth", f"angular error, MAE {evaluation.metrics['mae']:.2f} deg (0 to {ERROR_MAP_MAX_DEG:g}+)",
-         f"relative fit residual (0 to {residual_threshold:g}+)"],
+        [estimate, normal_panel(truth, pixels.mask), errors, residual],
+        ["estimated normals (black: flagged invalid)", "ground truth", f"angular error, MAE {evaluation.metrics['mae']:.2f} deg",
+         "relative fit residual"],
         f"{pixels.name}",
-        "Normals shown as RGB = ((x, -y, -z) + 1) / 2 in the camera frame; error in degrees inside the mask. "
-        "Residual: RMS misfit of the Lambertian model over the RMS capture, a confidence the solver computes without "
-        "the truth (specular light and wrong shadow masks raise it).",
+        "Normals shown as RGB = ((x, -y, -z) + 1) / 2 in the camera frame, white outside the mask. Error: angle to the true "
+        f"normal inside the mask (colours saturate at {ERROR_MAP_MAX_DEG:g} deg; invalid pixels count with their placeholder "
+        "normal, as in the MAE). Residual: RMS misfit of the Lambertian model over the RMS capture, a confidence the solver "
+        f"computes without the truth (specular light and wrong shadow masks raise it; above {residual_threshold:g} is flagged poor_fit).",
         columns=4,
         cmap="magma",
-        colorbar_label=None,
+        colorbar_label=[None, None, "degrees", "residual"],
         limits=[None, None, (0.0, ERROR_MAP_MAX_DEG), (0.0, residual_threshold)],
     )
     save_figure(fig, out / f"{stem}_normals.png")
-    return pixels.name, normal_to_rgb(normal), errors, evaluation.metrics["mae"]
+    return pixels.name, estimate, errors, evaluation.metrics["mae"]
 
 
 def _summary_figure(path: Path, panels: list, document: dict) -> None:
-    images, titles = [], []
+    images, titles, limits, labels = [], [], [], []
     for name, normal_rgb, errors, mae in panels:
-        images += [normal_rgb, np.nan_to_num(errors) / ERROR_MAP_MAX_DEG]
-        titles += [f"{name}: normals", f"error, MAE {mae:.2f} deg (black 0, white {ERROR_MAP_MAX_DEG:g}+)"]
+        images += [normal_rgb, errors]
+        titles += [f"{name}: normals", f"error, MAE {mae:.2f} deg"]
+        limits += [None, (0.0, ERROR_MAP_MAX_DEG)]
+        labels += [None, "degrees"]
     fig = image_grid(
-        [np.clip(image, 0, 1) if image.ndim == 2 else image for image in images],
+        images,
         titles,
         f"{document['method']} with {Path(document['patterns']).name}: mean MAE {document['mean_mae']:.2f} deg",
-        f"Noise {document['noise']}, rig {document['rig']}, auto exposure per scene unless fixed. "
-        f"Error maps: angle between estimated and true normals, scaled so white = {ERROR_MAP_MAX_DEG:g} degrees or more.",
+        f"Noise {document['noise']}, rig {document['rig']}, exposure {document['exposure']}. Normals white outside the mask, black where "
+        f"flagged invalid. Error maps: angle between estimated and true normals, colours saturate at {ERROR_MAP_MAX_DEG:g} degrees.",
         columns=4,
-        cmap="gray",
+        cmap="magma",
+        colorbar_label=labels,
+        limits=limits,
     )
     save_figure(fig, path)

@@ -24,6 +24,16 @@ def normal_to_rgb(normal: np.ndarray) -> np.ndarray:
     return np.clip(0.5 * (colour + 1.0), 0.0, 1.0)
 
 
+def normal_panel(normal: np.ndarray, mask: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """RGB image (H, W, 3) of unit normals (H, W, 3), camera frame, for figures: ``normal_to_rgb``
+    inside ``mask`` (H, W) bool, white outside it, and black where ``valid`` (H, W) bool is False
+    inside it (a flagged pixel's placeholder normal would otherwise look like an estimate)."""
+    image = np.where(mask[..., None], normal_to_rgb(normal), 1.0)
+    if valid is not None:
+        image[mask & ~valid] = 0.0
+    return image
+
+
 def save_figure(fig, path) -> None:
     """Save a figure as PNG atomically and release it."""
     with atomic_path(path, suffix=".png") as tmp:
@@ -34,19 +44,22 @@ def save_figure(fig, path) -> None:
 def image_grid(images: list[np.ndarray], titles: list[str], suptitle: str, caption: str, columns: int = 4, cmap=None, colorbar_label=None,
                limits: list | None = None):
     """A figure with one panel per image (H, W, 3) or (H, W), titled, with a caption line below.
-    ``limits`` optionally gives each (H, W) image a fixed colour range (vmin, vmax) or None (its own)."""
+    ``limits`` optionally gives each (H, W) image a fixed colour range (vmin, vmax) or None (its own).
+    ``colorbar_label``: one label for a colour bar beside every panel, or a list with a label (or
+    None: no bar) per panel."""
     count = len(images)
     columns = max(1, min(columns, count))
     rows = int(np.ceil(count / columns))
     fig, axes = plt.subplots(rows, columns, figsize=(3.2 * columns, 2.9 * rows + 0.6), squeeze=False)
     for ax in axes.ravel():
         ax.set_axis_off()
-    for ax, image, title, limit in zip(axes.ravel(), images, titles, limits or [None] * count):
+    labels = colorbar_label if isinstance(colorbar_label, list) else [colorbar_label] * count
+    for ax, image, title, limit, label in zip(axes.ravel(), images, titles, limits or [None] * count, labels):
         vmin, vmax = limit if limit is not None else (None, None)
         shown = ax.imshow(image, cmap=cmap, interpolation="nearest", vmin=vmin, vmax=vmax)
         ax.set_title(title, fontsize=9)
-        if colorbar_label is not None:
-            fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.04, label=colorbar_label)
+        if label is not None:
+            fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.04, label=label)
     fig.suptitle(suptitle)
     fig.text(0.5, 0.005, caption, ha="center", va="bottom", fontsize=8, wrap=True)
     fig.tight_layout(rect=(0, 0.04, 1, 1))

@@ -40,7 +40,7 @@ from reconstruct.metrics import angular_error_deg, normal_metrics
 from reconstruct.inverse_render import FitConfig, FitProblem, InverseRenderResult, render_under_patterns
 from reconstruct.model_selection import SelectionConfig, choose_light_model, light_spread, select_basis
 from reconstruct.relight import TEST_EVERY, VALIDATION_EVERY, olat_emission, relighting_metrics, split_lights
-from train.figures import for_display, image_grid, normal_to_rgb, save_figure
+from train.figures import for_display, image_grid, normal_panel, normal_to_rgb, save_figure
 from train.scene_pixels import scene_pixels
 from train.simulate_command import parse_exposure, resolve_exposure
 
@@ -421,11 +421,11 @@ def _normals_figure(path: Path, normal_image: np.ndarray, scene, output: dict, b
 
     mask = scene.mask[box]
     normal_image = normal_image[box]
-    panels = [("estimate", np.where(mask[..., None], normal_to_rgb(normal_image), 1.0))]
+    panels = [("estimate", normal_panel(normal_image, mask))]
     error = None
     if scene.normal is not None:
         true_normal = scene.normal[box]
-        panels.append(("ground truth", np.where(mask[..., None], normal_to_rgb(true_normal), 1.0)))
+        panels.append(("ground truth", normal_panel(true_normal, mask)))
         angle = angular_error_deg(torch.as_tensor(normal_image), torch.as_tensor(true_normal, dtype=torch.float32)).numpy()
         error = np.where(mask, angle, np.nan)
     columns = len(panels) + (error is not None)

@@ -216,6 +216,36 @@ def _series(rows: list[dict]) -> dict:
     return {key: sorted(values, key=lambda r: r["M"]) for key, values in sorted(series.items(), key=lambda item: _KIND_ORDER.get(item[0][0], 9))}
 
 
+ALL_INVALID_LABEL = "every pixel invalid (MAE of the placeholder normal)"
+
+
+def all_invalid(row: dict) -> bool:
+    """Whether every pixel of a method's evaluation was flagged invalid: its MAE measures the
+    placeholder normal, not a reconstruction."""
+    return row.get("invalid_fraction", 0.0) >= 1.0
+
+
+def _cross_out(ax, points: list[tuple[float, float]]) -> None:
+    """Mark chart points (x, y) of all-invalid evaluations with one labelled black cross each."""
+    if points:
+        ax.plot(*zip(*points), linestyle="none", marker="x", color="black", markersize=11, markeredgewidth=1.5, label=ALL_INVALID_LABEL, zorder=5)
+
+
+def _label_counts(ax, points: list[tuple[float, float, int]]) -> None:
+    """Label chart points (x, y, M) with "M=..." on log axes; points within 2 % of each other
+    share one label listing their M values (methods with the same result would pile up)."""
+    groups: list[list] = []
+    for x, y, count in sorted(points):
+        for group in groups:
+            if all(abs(math.log(max(a, 1e-12) / max(b, 1e-12))) < 0.02 for a, b in ((x, group[0]), (y, group[1]))):
+                group[2].add(count)
+                break
+        else:
+            groups.append([x, y, {count}])
+    for x, y, counts in groups:
+        ax.annotate("M=" + ",".join(map(str, sorted(counts))), (x, y), textcoords="offset points", xytext=(4, 3), fontsize=6)
+
+
 def chart_mae_vs_patterns(rows: list[dict], caption: str):
     """MAE (deg) against M, one line per method; the OLAT reference as a horizontal line."""
     fig, ax = plt.subplots(figsize=(9.0, 4.8))
@@ -227,6 +257,7 @@ def chart_mae_vs_patterns(rows: list[dict], caption: str):
         maes = [row["mae"] for row in values]
         errors = [row["mae_std"] for row in values]
         ax.errorbar(counts, maes, yerr=errors if kind == "learned" else None, label=label, capsize=3, **_style(kind, series))
+    _cross_out(ax, [(row["M"], row["mae"]) for row in rows if row["kind"] != "reference" and all_invalid(row)])
     counts = sorted({row["M"] for row in rows if row["kind"] != "reference"})
     ax.set_xticks(counts)
     ax.set_xlabel("number of patterns M (images)")
@@ -259,6 +290,7 @@ def plain_log_ticks(axis) -> None:
 def chart_mae_vs_cost(rows: list[dict], key: str, xlabel: str, title: str, caption: str):
     """Scatter of MAE (deg) against a cost per method and M (log x axis), labelled by M."""
     fig, ax = plt.subplots(figsize=(9.0, 4.8))
+    labelled = []
     for (kind, label, series), values in _series(rows).items():
         xs = [max(row[key], 1e-6) for row in values]
         ys = [row["mae"] for row in values]
@@ -267,8 +299,9 @@ def chart_mae_vs_cost(rows: list[dict], key: str, xlabel: str, title: str, capti
         style.pop("linestyle", None)
         ax.plot(xs, ys, linestyle="none", markersize=7 if kind != "heuristic" else 9, label=label, **style)
         if kind != "heuristic":  # heuristics share their M's positions: labels there would pile up
-            for x, y, row in zip(xs, ys, values):
-                ax.annotate(f"M={row['M']}", (x, y), textcoords="offset points", xytext=(4, 3), fontsize=6)
+            labelled += [(x, y, row["M"]) for x, y, row in zip(xs, ys, values)]
+    _label_counts(ax, labelled)
+    _cross_out(ax, [(max(row[key], 1e-6), row["mae"]) for row in rows if all_invalid(row)])
     ax.set_xscale("log")
     plain_log_ticks(ax.xaxis)
     ax.set_xlabel(xlabel)
@@ -298,6 +331,8 @@ def chart_mae_vs_noise(results: dict, caption: str):
             if kind == "reference":
                 style.update(linestyle="--", marker="*")
             ax.plot([p[0] for p in points], [p[1] for p in points], label=label, **style)
+        _cross_out(ax, [(noise, row["mae"]) for noise in noises for row in per_noise[noise]
+                        if row["M"] == count and row["kind"] != "reference" and all_invalid(row)])
         ax.set_xscale("symlog", linthresh=min([n for n in noises if n > 0], default=1.0))
         ax.set_xticks(noises)
         ax.set_xticklabels([f"{n:g}" for n in noises])
@@ -322,6 +357,7 @@ def chart_specular_free(rows: list[dict], free_rows: list[dict], caption: str):
     and M (log axes); the distance above the diagonal is the error due to specular reflection."""
     free = {(row["series"], row["M"]): row["mae"] for row in free_rows}
     fig, ax = plt.subplots(figsize=(9.0, 5.2))
+    labelled = []
     for (kind, label, series), values in _series(rows).items():
         points = [(free[(row["series"], row["M"])], row["mae"], row["M"]) for row in values if (row["series"], row["M"]) in free]
         if not points:
@@ -331,8 +367,9 @@ def chart_specular_free(rows: list[dict], free_rows: list[dict], caption: str):
         style.pop("linestyle", None)
         ax.plot([p[0] for p in points], [p[1] for p in points], linestyle="none", markersize=7 if kind != "heuristic" else 9, label=label, **style)
         if kind != "heuristic":
-            for x, y, count in points:
-                ax.annotate(f"M={count}", (x, y), textcoords="offset points", xytext=(4, 3), fontsize=6)
+            labelled += points
+    _label_counts(ax, labelled)
+    _cross_out(ax, [(free[(row["series"], row["M"])], row["mae"]) for row in rows if (row["series"], row["M"]) in free and all_invalid(row)])
     low = max(min([*free.values(), *(row["mae"] for row in rows)], default=0.1), 1e-2)
     high = max([*free.values(), *(row["mae"] for row in rows)], default=1.0)
     ax.plot([low, high], [low, high], color="grey", linewidth=1, linestyle=":", label="no specular error (y = x)")
@@ -484,7 +521,7 @@ def pivot_cell(row: dict, key: str, digits: int) -> str:
     """One cell of a method x M table: the row's value, and how many seeds it averages when more
     than one (a series can average several seeds at one M and one at another). An error where
     every pixel was invalid is marked: it measures the default normal, not a reconstruction."""
-    note = " (all invalid)" if key in ("mae", "median") and row.get("invalid_fraction", 0.0) >= 1.0 else ""
+    note = " (all invalid)" if key in ("mae", "median") and all_invalid(row) else ""
     return _fmt(row[key], digits) + note + (f" (mean of {row['seeds']} seeds)" if row["seeds"] > 1 else "")
 
 

@@ -1,0 +1,22 @@
+import numpy as np
+
+from train.figures import image_grid, normal_panel, normal_to_rgb
+
+
+def test_normal_panel_marks_background_and_invalid_pixels():
+    normal = np.zeros((2, 3, 3))
+    normal[..., 2] = -1.0  # facing the camera: RGB (0.5, 0.5, 1)
+    mask = np.array([[True, True, False], [True, False, False]])
+    valid = np.array([[True, False, True], [True, True, True]])
+    image = normal_panel(normal, mask, valid)
+    assert np.allclose(image[0, 0], (0.5, 0.5, 1.0))
+    assert np.allclose(image[0, 1], 0.0)  # invalid inside the mask: black
+    assert np.allclose(image[~mask], 1.0)  # outside the mask: white, whatever its normal or validity
+    assert np.allclose(normal_panel(normal, mask)[mask], normal_to_rgb(normal)[mask])
+
+
+def test_image_grid_draws_colour_bars_only_where_labelled():
+    images = [np.zeros((4, 4, 3)), np.arange(16.0).reshape(4, 4)]
+    fig = image_grid(images, ["rgb", "values"], "title", "caption", colorbar_label=[None, "degrees"])
+    labels = [ax.get_ylabel() for ax in fig.axes if ax.get_ylabel()]
+    assert labels == ["degrees"] and len(fig.axes) == 3  # two panels and one bar
