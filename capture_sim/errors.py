@@ -45,6 +45,22 @@ def is_whole_number(value, low: int = 0, high: float = float("inf")) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and low <= value <= high
 
 
+def check_field_types(config) -> None:
+    """Refuse fields of a settings dataclass whose values do not match their annotation: an
+    ``int`` field must hold a whole number, a ``float`` field a real number that is not NaN (an
+    int is accepted; bools never are). For configs built in code; TOML loading checks types first."""
+    import dataclasses
+    import math
+
+    for field in dataclasses.fields(config):
+        value = getattr(config, field.name)
+        annotation = field.type if isinstance(field.type, str) else getattr(field.type, "__name__", "")
+        if annotation == "int" and not is_whole_number(value, -(2**63), 2**63 - 1):
+            raise InputError(f"{type(config).__name__}: {field.name} must be a whole number, got {value!r}")
+        if annotation == "float" and (isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) or math.isnan(value)):
+            raise InputError(f"{type(config).__name__}: {field.name} must be a number, got {value!r}")
+
+
 def check_seed(name: str, seed) -> int:
     """``seed`` as an int if it is a whole number in [0, MAX_SEED], else ``InputError``."""
     if not is_whole_number(seed, 0, MAX_SEED):
@@ -75,6 +91,8 @@ def check_array(
         raise InputError(f"{name}: expected an array, got {type(value).__name__}")
     if isinstance(value, np.ndarray) and value.dtype.kind not in "biuf":
         raise InputError(f"{name}: expected numbers, got an array of dtype {value.dtype}")
+    if isinstance(value, torch.Tensor) and value.is_complex():
+        raise InputError(f"{name}: expected real numbers, got a tensor of dtype {value.dtype}")
     actual = tuple(value.shape)
     if shape is not None:
         expected = tuple(shape)

@@ -62,18 +62,21 @@ def normal_metrics(estimate: torch.Tensor, truth: torch.Tensor, mask: torch.Tens
     Args:
         estimate: (..., 3) estimated normals, camera frame.
         truth: (..., 3) true normals.
-        mask: (...) bool, pixels to count.
+        mask: (...) bool, pixels to count (the others may hold anything, NaN included).
 
     Returns:
         dict: mae and median (degrees; the mean of the two middle errors for an even count),
         under_5, under_10, under_20, under_30 (fractions of the masked pixels with an error below
         that many degrees, in [0, 1]) and count (pixels); an empty mask gives zeros and count 0.
     """
+    check_array("estimate", estimate, ("...", 3), finite=False)
+    check_array("truth", truth, tuple(estimate.shape), finite=False)
     estimate, truth, mask = torch.as_tensor(estimate), torch.as_tensor(truth), torch.as_tensor(mask)
     check_array("mask", mask, tuple(estimate.shape[:-1]))
     if mask.dtype != torch.bool:
         raise InputError("mask must be a bool array")
-    errors = angular_error_deg(estimate.detach(), truth.detach())[mask].double()
+    # Only masked pixels must be finite: methods may leave NaN in the background.
+    errors = angular_error_deg(estimate.detach()[mask], truth.detach()[mask]).double()
     if errors.numel() == 0:
         return {"mae": 0.0, "median": 0.0, "under_5": 0.0, "under_10": 0.0, "under_20": 0.0, "under_30": 0.0, "count": 0}
     # torch.median returns the lower of the two middle values: average both (one for an odd count).
@@ -85,10 +88,11 @@ def normal_metrics(estimate: torch.Tensor, truth: torch.Tensor, mask: torch.Tens
     return summary
 
 
-def _check_images(prediction, truth, mask) -> torch.Tensor:
+def _check_images(prediction, truth, mask) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The inputs of ``psnr`` and ``ssim`` as tensors, checked."""
     check_array("prediction", prediction, ("...", "H", "W", 3))
     check_array("truth", truth, tuple(prediction.shape))
-    mask = torch.as_tensor(mask)
+    prediction, truth, mask = torch.as_tensor(prediction), torch.as_tensor(truth), torch.as_tensor(mask)
     check_array("mask", mask, tuple(prediction.shape[-3:-1]))
     if mask.dtype != torch.bool:
         raise InputError("mask must be a bool array")
@@ -96,7 +100,7 @@ def _check_images(prediction, truth, mask) -> torch.Tensor:
         raise InputError("mask selects no pixels")
     if prediction.numel() == 0:
         raise InputError(f"no images to compare: prediction has shape {tuple(prediction.shape)}")
-    return mask
+    return prediction, truth, mask
 
 
 def psnr(prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> float:
@@ -111,7 +115,7 @@ def psnr(prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> f
         10 log10(1 / MSE), MSE pooled over the masked pixels, channels and images; capped at
         PSNR_CAP_DB.
     """
-    mask = _check_images(prediction, truth, mask)
+    prediction, truth, mask = _check_images(prediction, truth, mask)
     # PSNR only needs the masked values; kornia reduces them whatever their layout.
     predicted, reference = prediction.detach().double()[..., mask, :], truth.detach().double()[..., mask, :]
     value = float(kornia.metrics.psnr(predicted, reference, max_val=1.0))
@@ -130,7 +134,7 @@ def ssim(prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, wind
     Returns:
         SSIM averaged over masked pixels, channels and images, in [-1, 1].
     """
-    mask = _check_images(prediction, truth, mask)
+    prediction, truth, mask = _check_images(prediction, truth, mask)
     if window_size < 1 or window_size % 2 == 0:
         raise InputError(f"window_size must be a positive odd number, got {window_size}")
     height, width = mask.shape

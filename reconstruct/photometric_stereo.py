@@ -42,9 +42,9 @@ from dataclasses import dataclass, field
 
 import torch
 
-from capture_sim.errors import InputError, check_array
+from capture_sim.errors import InputError, check_array, check_field_types
 from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, finite_albedo, lighting_matrix
-from reconstruct.pixel_solve import CONDITION_CAP, Moments, alternate, implicit_step, normalised_moments, relative_residual, take_pixels
+from reconstruct.pixel_solve import CONDITION_CAP, SOLVE_DTYPE, Moments, alternate, implicit_step, normalised_moments, relative_residual, take_pixels
 from reconstruct.shadow_search import restarted_search
 
 FLAG_NAMES = ("dark", "saturated", "ill_conditioned", "back_facing", "bad_geometry", "not_converged", "poor_fit", "grazing")
@@ -62,10 +62,12 @@ class PSConfig:
 
     damping: float = 1e-9
     """Tikhonov damping relative to each 3x3 system's scale: lambda = damping * trace / 3. Raised
-    to at least 8 machine epsilons of the working dtype (about 1e-6 in float32) so that damped
-    systems stay positive definite after rounding. Larger values bias ill-conditioned pixels."""
+    to at least 8 machine epsilons of the systems' dtype (``pixel_solve.SOLVE_DTYPE``, float64:
+    about 2e-15) so that damped systems stay positive definite after rounding. Larger values bias
+    ill-conditioned pixels."""
     max_shadow_iterations: int = 20
-    """Cap on attached-shadow mask updates (each re-solves only pixels whose mask changed)."""
+    """Cap on attached-shadow mask updates (each re-solves only pixels whose mask changed; the
+    first fits every pixel, so at least 1)."""
     max_alternations: int = 50
     """Cap on albedo/normal alternations per shadow mask (usually a few suffice)."""
     tolerance_deg: float = 1e-3
@@ -98,26 +100,33 @@ class PSConfig:
     changes with the normal."""
 
     def __post_init__(self):
-        check_flag_thresholds(self)
-        if not 0 < self.damping <= 1:  # relative to the system's scale: above 1 it outweighs the data
-            raise InputError(f"PSConfig.damping must lie in (0, 1], got {self.damping!r}")
-        if self.max_shadow_iterations < 0 or self.max_alternations < 1 or self.line_search_steps < 0:
-            raise InputError("PSConfig: iteration caps must be >= 0 (max_alternations >= 1)")
-        for name in ("tolerance_deg", "kink_tolerance_deg", "restart_condition", "condition_threshold"):
-            if not getattr(self, name) > 0:
-                raise InputError(f"PSConfig: {name} must be positive, got {getattr(self, name)!r}")
-        if not 0 < self.min_distance <= MAX_MIN_DISTANCE:
-            raise InputError(f"PSConfig: min_distance must lie in (0, {MAX_MIN_DISTANCE:g}] metres, got {self.min_distance!r}")
-        if not 0 <= self.dark_threshold < self.saturation_threshold <= 1:
-            raise InputError(
-                "PSConfig: need 0 <= dark_threshold < saturation_threshold <= 1, got "
-                f"{self.dark_threshold!r} and {self.saturation_threshold!r}"
-            )
+        check_shared_settings(self)
+        if self.max_alternations < 1:
+            raise InputError(f"PSConfig: max_alternations must be >= 1, got {self.max_alternations!r}")
+        if not self.tolerance_deg > 0:
+            raise InputError(f"PSConfig: tolerance_deg must be positive, got {self.tolerance_deg!r}")
 
 
-def check_flag_thresholds(config) -> None:
-    """Refuse a ``residual_threshold`` or ``grazing_cos`` outside [0, 1] (either config class)."""
+def check_shared_settings(config) -> None:
+    """Refuse bad values of the settings ``PSConfig`` and ``WoodhamConfig`` share: field types,
+    damping outside (0, 1], fewer than one shadow iteration (the first one is the fit itself),
+    negative line-search steps, non-positive tolerances and thresholds, ``min_distance`` outside
+    (0, MAX_MIN_DISTANCE], dark and saturation thresholds out of order, ``residual_threshold`` or
+    ``grazing_cos`` outside [0, 1]."""
+    check_field_types(config)
     name = type(config).__name__
+    if not 0 < config.damping <= 1:  # relative to the system's scale: above 1 it outweighs the data
+        raise InputError(f"{name}: damping must lie in (0, 1], got {config.damping!r}")
+    if config.max_shadow_iterations < 1 or config.line_search_steps < 0:
+        raise InputError(f"{name}: need max_shadow_iterations >= 1 and line_search_steps >= 0, got "
+                         f"{config.max_shadow_iterations!r} and {config.line_search_steps!r}")
+    for key in ("kink_tolerance_deg", "restart_condition", "condition_threshold"):
+        if not getattr(config, key) > 0:
+            raise InputError(f"{name}: {key} must be positive, got {getattr(config, key)!r}")
+    if not 0 < config.min_distance <= MAX_MIN_DISTANCE:
+        raise InputError(f"{name}: min_distance must lie in (0, {MAX_MIN_DISTANCE:g}] metres, got {config.min_distance!r}")
+    if not 0 <= config.dark_threshold < config.saturation_threshold <= 1:
+        raise InputError(f"{name}: need 0 <= dark_threshold < saturation_threshold <= 1, got {config.dark_threshold!r} and {config.saturation_threshold!r}")
     for key in ("residual_threshold", "grazing_cos"):
         value = getattr(config, key)
         if not 0 <= value <= 1:
@@ -230,15 +239,17 @@ class PatternEvaluator:
 
     def __init__(self, light_field: LightField, lighting, captures, equation_weight, capture_scale, keep_vectors: bool = False):
         self.field, self.lighting = light_field, lighting.detach()
-        self.captures, self.equation_weight, self.capture_scale = captures.detach(), equation_weight, capture_scale
+        self.captures, self.equation_weight, self.capture_scale = (values.detach().to(SOLVE_DTYPE) for values in (captures, equation_weight, capture_scale))
         self.num_patterns = (lighting.shape[1] // 12) if keep_vectors else None
 
     def masks_differ(self, index, first, second):
         return self.field.masks_differ(index, first, second)
 
     def evaluate(self, index, normal):
+        """Moments (in ``SOLVE_DTYPE``; kept vectors in the lighting's dtype) of the shadow masks
+        of normals (3, n) of pixels ``index``."""
         count = normal.shape[1]
-        moments = Moments.empty(count, normal.dtype, self.num_patterns)
+        moments = Moments.empty(count, SOLVE_DTYPE, self.num_patterns, self.lighting.dtype)
         for start, stop, vectors in self.field.vector_blocks(index, normal, self.lighting):
             if index is None:
                 captures, weight, scale = self.captures[..., start:stop], self.equation_weight[..., start:stop], self.capture_scale[start:stop]
@@ -246,13 +257,15 @@ class PatternEvaluator:
                 pixels = index[start:stop]
                 captures, weight = take_pixels(self.captures, pixels), take_pixels(self.equation_weight, pixels)
                 scale = self.capture_scale[pixels]
-            moments.write(start, stop, normalised_moments(vectors, captures, weight, scale), vectors)
+            moments.write(start, stop, normalised_moments(vectors.to(SOLVE_DTYPE), captures, weight, scale), vectors)
         return moments
 
 
 def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, block_size: int) -> PSResult:
-    """Solve N pixels: captures (M, N, 3), lighting matrix (K, 12 M), points (N, 3)."""
+    """Solve N pixels: captures (M, N, 3), lighting matrix (K, 12 M), points (N, 3). The search
+    and the per-pixel algebra run in ``SOLVE_DTYPE``; the result is in the inputs' dtype."""
     track_gradient = torch.is_grad_enabled() and (captures.requires_grad or lighting.requires_grad)
+    dtype = captures.dtype
     captures = captures.permute(0, 2, 1).contiguous()  # (M, 3, N): pixels last
     with torch.no_grad():
         light_field = LightField(points, lights, falloff, config.min_distance, block_size)
@@ -262,14 +275,14 @@ def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, 
         def fit(albedo, moments):
             return alternate(albedo, moments, config.damping, config.tolerance_deg, config.max_alternations)
 
-        initial_albedo = (captures.detach() / capture_scale).amax(dim=0).clamp_min(0)
-        view = light_field.view.T.contiguous()
+        initial_albedo = (evaluator.captures / evaluator.capture_scale).amax(dim=0).clamp_min(0)
+        view = light_field.view.T.to(SOLVE_DTYPE)
         state, condition = restarted_search(evaluator, fit, initial_albedo, view, config)
 
     normal, albedo = state.normal, state.albedo
     if track_gradient:
         vectors = differentiable_vectors(light_field, state.normal, lighting, state.moments.vectors)
-        graph_moments = normalised_moments(vectors, captures, equation_weight, capture_scale)
+        graph_moments = normalised_moments(vectors.to(SOLVE_DTYPE), captures.to(SOLVE_DTYPE), evaluator.equation_weight, evaluator.capture_scale)
         graph_albedo, graph_normal = implicit_step(albedo, graph_moments, config.damping)
         # Values stay the searched ones (identical with and without gradient tracking); only the
         # derivative comes from the Newton step.
@@ -277,7 +290,8 @@ def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, 
         normal = normal + (graph_normal - graph_normal.detach())
     albedo = albedo * (state.moments.capture_scale / state.moments.lighting_scale)
     flags = {"dark": dark, "saturated": saturated, "not_converged": ~state.converged}
-    return finalise(normal.T, albedo.T, condition, relative_residual(state.normal, state.moments), flags, light_field, config)
+    fit_residual = relative_residual(state.normal, state.moments)
+    return finalise(normal.T.to(dtype), albedo.T.to(dtype), condition.to(dtype), fit_residual.to(dtype), flags, light_field, config)
 
 
 def concatenate_results(results: list[PSResult], dtype) -> PSResult:
@@ -336,7 +350,7 @@ def solve_pixels(solve_block, captures, emission, points, pixel_index, lights, c
     lights = torch.as_tensor(lights).detach().to(dtype)
     scale = emission_scale(emission)
     lighting = lighting_matrix(emission / scale, lights)
-    config = working_config(config, dtype)
+    config = working_config(config, SOLVE_DTYPE)
     count = points.shape[0] if pixel_index is None else pixel_index.numel()
     if count == 0:
         # No pixels: empty outputs that are still on the inputs' graph, as every other result is.
@@ -371,8 +385,9 @@ def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSC
         config: solver settings.
         chunk_size: pixels per block of (pixels x lights) work; bounds the temporaries (the
             unshadowed N x K weights are kept once). Results depend on it (and on the thread
-            count) only through float rounding: in float32, up to a few hundredths of a degree on
-            well-conditioned pixels, more on ill-conditioned ones.
+            count) only through the rounding of the lighting products in the inputs' dtype (the
+            per-pixel algebra runs in float64): about 1e-3 degree in float32 on pixels of
+            condition ~1e3 (tests/test_photometric_stereo.py).
 
     Returns:
         PSResult with (N, 3) normals and albedo, (N,) valid, condition, residual and flags. Differentiable

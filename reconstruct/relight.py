@@ -79,7 +79,10 @@ def olat_emission(light_index: torch.Tensor, num_lights: int, exposure: float, d
     """
     if not exposure > 0 or not math.isfinite(exposure):
         raise InputError(f"exposure must be positive and finite, got {exposure}")
-    index = torch.as_tensor(light_index, dtype=torch.int64)
+    index = torch.as_tensor(light_index)
+    if index.is_floating_point() or index.is_complex() or index.dtype == torch.bool:
+        raise InputError(f"light indices must be integers, got dtype {index.dtype}")
+    index = index.to(torch.int64)
     if index.numel() and (int(index.min()) < 0 or int(index.max()) >= num_lights):
         raise InputError(f"light indices must lie in [0, {num_lights})")
     emission = torch.zeros((index.numel(), num_lights, 3), dtype=dtype)
@@ -122,7 +125,7 @@ def relighting_metrics(predicted: torch.Tensor, truth: torch.Tensor, pixel_index
     Args:
         predicted: (M, N, 3) rendered e * O of the masked pixels (clipped to [0, 1] here).
         truth: (M, N, 3) true e * O of the same pixels (clipped to [0, 1] here).
-        pixel_index: (N,) flat indices of the pixels in the H x W image.
+        pixel_index: (N,) distinct flat indices of the pixels in the H x W image.
         height, width: image size.
 
     Returns:
@@ -137,6 +140,8 @@ def relighting_metrics(predicted: torch.Tensor, truth: torch.Tensor, pixel_index
         raise InputError("relighting metrics need at least one pixel")
     if pixel_index.is_floating_point() or pixel_index.dtype == torch.bool or int(pixel_index.min()) < 0 or int(pixel_index.max()) >= height * width:
         raise InputError(f"pixel_index must hold integer indices into the {height} x {width} image")
+    if torch.unique(pixel_index).numel() != pixel_index.numel():
+        raise InputError("pixel_index lists a pixel more than once")
     predicted = predicted.detach().double().clamp(0.0, 1.0)
     truth = truth.detach().double().clamp(0.0, 1.0)
     count = predicted.shape[0]

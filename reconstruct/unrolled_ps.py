@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import torch
 
-from capture_sim.errors import InputError, check_array
+from capture_sim.errors import InputError, check_array, check_field_types
 from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, finite_albedo, lighting_matrix, lighting_moments
 from reconstruct.pixel_solve import put_pixels, symmetric_apply, take_pixels
 
@@ -59,6 +59,9 @@ class UnrolledPSConfig:
     run in cache-sized sub-blocks of it). A speed setting: results change only by rounding."""
 
     def __post_init__(self):
+        check_field_types(self)
+        if not 0 < self.saturation_threshold <= 1:
+            raise InputError(f"UnrolledPSConfig: saturation_threshold must lie in (0, 1], got {self.saturation_threshold!r}")
         if self.shadow_iterations < 1 or self.alternations < 0 or self.grad_alternations < 0 or self.chunk_pixels < 1:
             raise InputError("UnrolledPSConfig: shadow_iterations and chunk_pixels must be >= 1, alternation counts >= 0")
         if not 0 < self.damping <= 1:  # relative to the system's scale: above 1 it outweighs the data

@@ -31,7 +31,7 @@ from reconstruct.photometric_stereo import (
     PatternEvaluator,
     PSResult,
     capture_flags,
-    check_flag_thresholds,
+    check_shared_settings,
     check_image_inputs,
     check_masked_inputs,
     concatenate_results,
@@ -41,7 +41,7 @@ from reconstruct.photometric_stereo import (
     unscale_albedo,
     working_config,
 )
-from reconstruct.pixel_solve import Moments, albedo_step, damped_solve, relative_residual, scaled_moments, unit
+from reconstruct.pixel_solve import SOLVE_DTYPE, Moments, albedo_step, damped_solve, relative_residual, scaled_moments, unit
 from reconstruct.shadow_search import restarted_search
 
 MAX_PIXELS_PER_SOLVE = 1 << 19
@@ -59,7 +59,7 @@ class WoodhamConfig:
     """OLAT only: captures below this fraction of the pixel's brightest OLAT capture (per channel)
     are treated as shadowed and dropped."""
     max_shadow_iterations: int = 20
-    """Cap on attached-shadow mask updates."""
+    """Cap on attached-shadow mask updates (at least 1: the first is the fit itself)."""
     line_search_steps: int = 4
     """Times a shadow-search step that would increase the residual is halved before giving up."""
     kink_tolerance_deg: float = 0.5
@@ -82,15 +82,9 @@ class WoodhamConfig:
     """Valid normals with n . v below this are flagged grazing (as ``PSConfig``)."""
 
     def __post_init__(self):
-        check_flag_thresholds(self)
-        if not 0 < self.damping <= 1 or not 0 <= self.shadow_threshold < 1:
-            # Damping is relative to each system's scale: above 1 it outweighs the data.
-            raise InputError(f"WoodhamConfig: damping must lie in (0, 1] and shadow_threshold in [0, 1), got {self.damping!r}, {self.shadow_threshold!r}")
-        if self.max_shadow_iterations < 0 or self.line_search_steps < 0:
-            raise InputError("WoodhamConfig: iteration caps must be >= 0")
-        positive = ("kink_tolerance_deg", "restart_condition", "condition_threshold", "min_distance")
-        if not all(getattr(self, name) > 0 for name in positive):
-            raise InputError(f"WoodhamConfig: {', '.join(positive)} must be positive")
+        check_shared_settings(self)
+        if not 0 <= self.shadow_threshold < 1:
+            raise InputError(f"WoodhamConfig: shadow_threshold must lie in [0, 1), got {self.shadow_threshold!r}")
 
 
 def woodham_fit(moments: Moments, damping: float):
@@ -112,12 +106,14 @@ class _OlatEvaluator:
         captures: (K, P, 3) OLAT captures (any float dtype; not copied).
         pixel_index: (N,) long rows of ``captures`` solved, or None for all P = N.
         config: WoodhamConfig.
-        dtype: working dtype.
+
+    Moments are formed and returned in ``SOLVE_DTYPE``.
     """
 
-    def __init__(self, light_field: LightField, light_emission, captures, pixel_index, config, dtype):
-        self.field, self.light_emission, self.captures = light_field, light_emission, captures
-        self.pixel_index, self.config, self.dtype = pixel_index, config, dtype
+    def __init__(self, light_field: LightField, light_emission, captures, pixel_index, config):
+        self.field, self.light_emission, self.captures = light_field, light_emission.to(SOLVE_DTYPE), captures
+        self.pixel_index, self.config, self.dtype = pixel_index, config, SOLVE_DTYPE
+        self._lights = light_field.lights.to(SOLVE_DTYPE)
         self._flags = None
 
     def _block(self, rows):
@@ -148,9 +144,9 @@ class _OlatEvaluator:
             saturated = torch.empty_like(dark)
         whole = self.field.sees_all(index, normal)
         for start, stop, rows in self.field.block_rows(index):
-            weight = self.field.shadowed_weights(rows, normal[:, start:stop], whole[start:stop])
+            weight = self.field.shadowed_weights(rows, normal[:, start:stop], whole[start:stop]).to(self.dtype)
             captures, equation_weight, scale = self._block(rows)
-            raw = olat_moments(weight, self.light_emission, captures, equation_weight, self.field.points[rows], self.field.lights)
+            raw = olat_moments(weight, self.light_emission, captures, equation_weight, self.field.points[rows].to(self.dtype), self._lights)
             moments.write(start, stop, scaled_moments(*raw, scale))
             if record:
                 dark[start:stop] = captures.amax(dim=(0, 2)) < self.config.dark_threshold
@@ -166,13 +162,14 @@ def _solve_block(evaluator, light_field: LightField, config, dark_and_saturated=
     def fit(albedo, moments):
         return woodham_fit(moments, config.damping)
 
-    count = light_field.num_pixels
-    view = light_field.view.T.contiguous()
-    state, condition = restarted_search(evaluator, fit, torch.ones((3, count), dtype=view.dtype), view, config)
+    count, dtype = light_field.num_pixels, light_field.points.dtype
+    view = light_field.view.T.to(SOLVE_DTYPE)
+    state, condition = restarted_search(evaluator, fit, torch.ones((3, count), dtype=SOLVE_DTYPE), view, config)
     dark, saturated = evaluator.capture_flags() if dark_and_saturated is None else dark_and_saturated
     albedo = state.albedo * (state.moments.capture_scale / state.moments.lighting_scale)
     flags = {"dark": dark, "saturated": saturated, "not_converged": ~state.converged}
-    return finalise(state.normal.T, albedo.T, condition, relative_residual(state.normal, state.moments), flags, light_field, config)
+    fit_residual = relative_residual(state.normal, state.moments)
+    return finalise(state.normal.T.to(dtype), albedo.T.to(dtype), condition.to(dtype), fit_residual.to(dtype), flags, light_field, config)
 
 
 def _olat_emission(emission: torch.Tensor):
@@ -203,6 +200,8 @@ def _check_inputs(captures, emission, points, lights, config, chunk_size):
         )
     if captures.shape[0] < 3:
         raise InputError(f"Woodham photometric stereo needs at least 3 captures, got {captures.shape[0]}")
+    if lights.shape[0] < 1:
+        raise InputError("Woodham photometric stereo needs at least one light, got K = 0")
     if not isinstance(config, WoodhamConfig):
         raise InputError(f"config must be a WoodhamConfig, got {type(config).__name__}")
     if chunk_size < 1:
@@ -217,7 +216,7 @@ def _solve(captures, emission, points, pixel_index, lights, falloff, config, chu
     dtype = torch.promote_types(torch.promote_types(captures.dtype, (emission if light_emission is None else light_emission).dtype), torch.float32)
     points = torch.as_tensor(points).detach().to(dtype)
     lights = torch.as_tensor(lights).detach().to(dtype)
-    config = working_config(config, dtype)
+    config = working_config(config, SOLVE_DTYPE)
     if light_emission is not None:
         light_emission = light_emission.to(dtype)
         scale = emission_scale(light_emission)
@@ -236,7 +235,7 @@ def _solve(captures, emission, points, pixel_index, lights, falloff, config, chu
             rows = block_index = pixel_index[start : start + MAX_PIXELS_PER_SOLVE]
         light_field = LightField(points[rows], lights, falloff, config.min_distance, chunk_size)
         if light_emission is not None:
-            evaluator = _OlatEvaluator(light_field, light_emission, captures.detach(), block_index, config, dtype)
+            evaluator = _OlatEvaluator(light_field, light_emission, captures.detach(), block_index, config)
             results.append(_solve_block(evaluator, light_field, config))
         else:
             block_captures = captures[:, rows].detach().to(dtype).permute(0, 2, 1).contiguous()

@@ -110,3 +110,30 @@ def test_median_of_an_even_count_and_numpy_inputs():
     metrics = normal_metrics(estimate, truth, np.ones(2, dtype=bool))
     assert metrics["median"] == pytest.approx(22.5) and metrics["mae"] == pytest.approx(22.5)
     assert angular_error_deg(np.array([[0, 0, -1]]), np.array([[0, 1, -1]])).dtype == torch.float32
+
+
+def test_image_metrics_accept_numpy_and_normal_metrics_ignore_the_background():
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0, 1, (2, 8, 9, 3))
+    prediction = np.clip(truth + 0.01, 0, 1)
+    mask = np.ones((8, 9), dtype=bool)
+    assert psnr(prediction, truth, mask) == pytest.approx(psnr(torch.as_tensor(prediction), torch.as_tensor(truth), torch.as_tensor(mask)))
+    assert ssim(prediction, truth, mask) == pytest.approx(ssim(torch.as_tensor(prediction), torch.as_tensor(truth), torch.as_tensor(mask)))
+    normals = np.tile(np.array([0.0, 0.0, -1.0]), (4, 5, 1))
+    estimate = normals.copy()
+    estimate[0, 0] = np.nan  # an external method's background
+    inside = np.ones((4, 5), dtype=bool)
+    inside[0, 0] = False
+    assert normal_metrics(estimate, normals, inside)["count"] == 19
+    with pytest.raises(InputError, match="NaN"):
+        normal_metrics(estimate, normals, np.ones((4, 5), dtype=bool))
+
+
+def test_relighting_inputs_with_repeats_or_float_indices_are_refused():
+    from reconstruct.relight import olat_emission, relighting_metrics
+
+    values = torch.rand(2, 2, 3)
+    with pytest.raises(InputError, match="more than once"):
+        relighting_metrics(values, values, torch.tensor([5, 5]), 4, 4)
+    with pytest.raises(InputError, match="must be integers"):
+        olat_emission(torch.tensor([1.7]), 4, 1.0)

@@ -108,3 +108,8 @@ def test_float32_diagonal_emission_is_detected_as_olat(exposure):
     assert detected is not None and torch.equal(detected, torch.diagonal(emission, dim1=0, dim2=1).T)
     emission[3, 5, 1] = 1e-6
     assert _olat_emission(emission) is None
+
+
+def test_no_lights_is_refused():
+    with pytest.raises(InputError, match="at least one light"):
+        solve_woodham(torch.rand(3, 2, 3), torch.rand(3, 0, 3), torch.tensor([[0.0, 0.0, 0.5]] * 2), torch.zeros(0, 3), Falloff())
