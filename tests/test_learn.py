@@ -263,3 +263,16 @@ def test_zero_steps_validate_the_start_patterns(scene_dirs, tmp_path):
     say 'not validated: pass --val-scenes' to a user who had passed it)."""
     result = learn.train_patterns(_config(scene_dirs, steps=0, init="tri_random"), tmp_path / "p.npz", progress=False)
     assert [step for step, _ in result.val_history] == [0] and math.isfinite(result.val_history[0][1])
+
+
+@pytest.mark.parametrize("kind", ["angular", "capped_angular", "cosine"])
+def test_normal_loss_closed_form_and_gradcheck(kind):
+    truth = torch.tensor([[0.0, 0.0, -1.0]] * 3, dtype=torch.float64)
+    tilt = torch.tensor([10.0, 30.0, 60.0], dtype=torch.float64).deg2rad()
+    estimate = torch.stack([torch.sin(tilt), torch.zeros(3, dtype=torch.float64), -torch.cos(tilt)], 1)
+    expected = {"angular": tilt.mean(), "capped_angular": tilt.clamp_max(math.radians(40)).mean(), "cosine": (1 - torch.cos(tilt)).mean()}[kind]
+    torch.testing.assert_close(normal_loss(estimate, truth, kind), expected)
+    probe = torch.randn(4, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    probe = probe / probe.norm(dim=1, keepdim=True)
+    probe[:, 2] = -probe[:, 2].abs()
+    assert torch.autograd.gradcheck(lambda e: normal_loss(e, truth[:1].expand(4, 3), kind, 80.0), (probe.requires_grad_(),))

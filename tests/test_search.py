@@ -86,7 +86,7 @@ def test_maxtime_stops_the_search():
 
     found = minimise(slow, np.zeros(3), LOW, HIGH, "GN_DIRECT_L", maxeval=10_000, maxtime=0.2)
     assert found.stop_reason == "maxtime reached"
-    assert 1 < len(found.history) < 10_000
+    assert 1 <= len(found.history) < 10_000  # timing-based: a stalled machine may manage only the start
 
 
 def test_other_objective_errors_propagate():
@@ -190,3 +190,12 @@ def test_a_start_that_leaves_every_pixel_invalid_is_warned(scene_dir, tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error", DisplexWarning)
         run_search(good, tmp_path / "tri.npz", progress=False)
+
+
+@pytest.mark.parametrize("algorithm", ["GN_CRS2_LM", "GN_ESCH"])
+def test_same_seed_same_search(algorithm):
+    """Stochastic algorithms repeat their evaluations exactly for a seed, and differ for another."""
+    def points(seed):
+        return [tuple(x) for x, _ in minimise(quadratic, np.zeros(3), LOW, HIGH, algorithm, maxeval=15, seed=seed).history]
+
+    assert points(4) == points(4) and points(4) != points(5)
