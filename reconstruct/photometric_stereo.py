@@ -239,15 +239,15 @@ class PatternEvaluator:
 
     def __init__(self, light_field: LightField, lighting, captures, equation_weight, capture_scale, keep_vectors: bool = False):
         self.field, self.lighting = light_field, lighting.detach()
-        self.captures, self.equation_weight, self.capture_scale = (values.detach().to(SOLVE_DTYPE) for values in (captures, equation_weight, capture_scale))
+        self.captures, self.equation_weight, self.capture_scale = captures.detach(), equation_weight, capture_scale
         self.num_patterns = (lighting.shape[1] // 12) if keep_vectors else None
 
     def masks_differ(self, index, first, second):
         return self.field.masks_differ(index, first, second)
 
     def evaluate(self, index, normal):
-        """Moments (in ``SOLVE_DTYPE``; kept vectors in the lighting's dtype) of the shadow masks
-        of normals (3, n) of pixels ``index``."""
+        """Moments of the shadow masks of normals (3, n) of pixels ``index``, in ``SOLVE_DTYPE``
+        (formed from the lighting vectors converted to it; kept vectors stay in the inputs' dtype)."""
         count = normal.shape[1]
         moments = Moments.empty(count, SOLVE_DTYPE, self.num_patterns, self.lighting.dtype)
         for start, stop, vectors in self.field.vector_blocks(index, normal, self.lighting):
@@ -257,13 +257,14 @@ class PatternEvaluator:
                 pixels = index[start:stop]
                 captures, weight = take_pixels(self.captures, pixels), take_pixels(self.equation_weight, pixels)
                 scale = self.capture_scale[pixels]
-            moments.write(start, stop, normalised_moments(vectors.to(SOLVE_DTYPE), captures, weight, scale), vectors)
+            moments.write(start, stop, normalised_moments(vectors.to(SOLVE_DTYPE), captures.to(SOLVE_DTYPE), weight.to(SOLVE_DTYPE), scale.to(SOLVE_DTYPE)), vectors)
         return moments
 
 
 def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, block_size: int) -> PSResult:
     """Solve N pixels: captures (M, N, 3), lighting matrix (K, 12 M), points (N, 3). The search
-    and the per-pixel algebra run in ``SOLVE_DTYPE``; the result is in the inputs' dtype."""
+    and the per-pixel algebra run in ``SOLVE_DTYPE``, the gradient's graph and the result in the
+    inputs' dtype."""
     track_gradient = torch.is_grad_enabled() and (captures.requires_grad or lighting.requires_grad)
     dtype = captures.dtype
     captures = captures.permute(0, 2, 1).contiguous()  # (M, 3, N): pixels last
@@ -275,20 +276,21 @@ def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, 
         def fit(albedo, moments):
             return alternate(albedo, moments, config.damping, config.tolerance_deg, config.max_alternations)
 
-        initial_albedo = (evaluator.captures / evaluator.capture_scale).amax(dim=0).clamp_min(0)
+        initial_albedo = (captures.detach() / capture_scale).amax(dim=0).clamp_min(0).to(SOLVE_DTYPE)
         view = light_field.view.T.to(SOLVE_DTYPE)
         state, condition = restarted_search(evaluator, fit, initial_albedo, view, config)
 
     normal, albedo = state.normal, state.albedo
     if track_gradient:
         vectors = differentiable_vectors(light_field, state.normal, lighting, state.moments.vectors)
-        graph_moments = normalised_moments(vectors.to(SOLVE_DTYPE), captures.to(SOLVE_DTYPE), evaluator.equation_weight, evaluator.capture_scale)
-        graph_albedo, graph_normal = implicit_step(albedo, graph_moments, config.damping)
+        # The derivative needs no float64: the graph stays in the inputs' dtype (half the memory).
+        graph_moments = normalised_moments(vectors, captures, equation_weight, capture_scale)
+        graph_albedo, graph_normal = implicit_step(albedo.to(dtype), graph_moments, working_config(config, dtype).damping)
         # Values stay the searched ones (identical with and without gradient tracking); only the
         # derivative comes from the Newton step.
-        albedo = albedo + (graph_albedo - graph_albedo.detach())
-        normal = normal + (graph_normal - graph_normal.detach())
-    albedo = albedo * (state.moments.capture_scale / state.moments.lighting_scale)
+        albedo = albedo.to(dtype) + (graph_albedo - graph_albedo.detach())
+        normal = normal.to(dtype) + (graph_normal - graph_normal.detach())
+    albedo = albedo * (state.moments.capture_scale / state.moments.lighting_scale).to(dtype)
     flags = {"dark": dark, "saturated": saturated, "not_converged": ~state.converged}
     fit_residual = relative_residual(state.normal, state.moments)
     return finalise(normal.T.to(dtype), albedo.T.to(dtype), condition.to(dtype), fit_residual.to(dtype), flags, light_field, config)

@@ -107,13 +107,12 @@ class _OlatEvaluator:
         pixel_index: (N,) long rows of ``captures`` solved, or None for all P = N.
         config: WoodhamConfig.
 
-    Moments are formed and returned in ``SOLVE_DTYPE``.
+    Moments are formed in the captures' working dtype and returned in ``SOLVE_DTYPE``.
     """
 
     def __init__(self, light_field: LightField, light_emission, captures, pixel_index, config):
-        self.field, self.light_emission, self.captures = light_field, light_emission.to(SOLVE_DTYPE), captures
-        self.pixel_index, self.config, self.dtype = pixel_index, config, SOLVE_DTYPE
-        self._lights = light_field.lights.to(SOLVE_DTYPE)
+        self.field, self.light_emission, self.captures = light_field, light_emission, captures
+        self.pixel_index, self.config, self.dtype = pixel_index, config, light_emission.dtype
         self._flags = None
 
     def _block(self, rows):
@@ -137,16 +136,16 @@ class _OlatEvaluator:
         return self.field.masks_differ(index, first, second)
 
     def evaluate(self, index, normal):
-        moments = Moments.empty(normal.shape[1], self.dtype)
+        moments = Moments.empty(normal.shape[1], SOLVE_DTYPE)
         record = index is None and self._flags is None
         if record:
             dark = torch.empty(normal.shape[1], dtype=torch.bool)
             saturated = torch.empty_like(dark)
         whole = self.field.sees_all(index, normal)
         for start, stop, rows in self.field.block_rows(index):
-            weight = self.field.shadowed_weights(rows, normal[:, start:stop], whole[start:stop]).to(self.dtype)
+            weight = self.field.shadowed_weights(rows, normal[:, start:stop], whole[start:stop])
             captures, equation_weight, scale = self._block(rows)
-            raw = olat_moments(weight, self.light_emission, captures, equation_weight, self.field.points[rows].to(self.dtype), self._lights)
+            raw = olat_moments(weight, self.light_emission, captures, equation_weight, self.field.points[rows], self.field.lights)
             moments.write(start, stop, scaled_moments(*raw, scale))
             if record:
                 dark[start:stop] = captures.amax(dim=(0, 2)) < self.config.dark_threshold
