@@ -461,3 +461,17 @@ def test_documented_flags_reach_their_commands(tmp_path, scene_file, capsys):
     assert run(["train", "--steps", "1", "--M", "2", "--scenes", str(scene_file), "--out", str(learned)]) == 0
     record = json.loads((tmp_path / "learned.config.json").read_text())
     assert record == json.loads(json.dumps(config_to_dict(TrainConfig(num_patterns=2, steps=1, scenes=(str(scene_file),)))))
+
+
+def test_threads_option_sets_torch_threads_for_the_command_only(monkeypatch, capsys):
+    import torch
+
+    import train.cli as cli
+
+    seen = []
+    monkeypatch.setattr(cli, "_patterns_list", lambda args: seen.append(torch.get_num_threads()))
+    before = torch.get_num_threads()
+    assert run(["--threads", "1", "patterns", "list"]) == 0 and seen == [1]
+    assert torch.get_num_threads() == before
+    assert run(["--threads", "-1", "patterns", "list"]) == 2
+    assert "thread count must be 0" in capsys.readouterr().err

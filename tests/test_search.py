@@ -199,3 +199,19 @@ def test_same_seed_same_search(algorithm):
         return [tuple(x) for x, _ in minimise(quadratic, np.zeros(3), LOW, HIGH, algorithm, maxeval=15, seed=seed).history]
 
     assert points(4) == points(4) and points(4) != points(5)
+
+
+@pytest.mark.parametrize("algorithm", ["GN_CRS2_LM", "LN_BOBYQA"])
+def test_ctrl_c_inside_the_objective_comes_out_as_keyboard_interrupt(algorithm):
+    """NLopt's C code must not see the interrupt (CRS2 turned it into chained SystemErrors)."""
+    calls = []
+
+    def interrupted(x, need_gradient):
+        calls.append(x)
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+        return quadratic(x, need_gradient)
+
+    with pytest.raises(KeyboardInterrupt):
+        minimise(interrupted, np.zeros(3), LOW, HIGH, algorithm, maxeval=50, seed=0)
+    assert len(calls) == 5

@@ -64,6 +64,18 @@ RERUN_REUSES_RUNS = "rerun the same command to reuse its finished learning and s
 """What an interrupted compare or demo tells the user."""
 
 
+def _thread_count(text: str) -> int:
+    from train.invrender_command import MAX_THREADS
+
+    try:
+        count = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid thread count {text!r}") from None
+    if not 0 <= count <= MAX_THREADS:
+        raise argparse.ArgumentTypeError(f"thread count must be 0 (torch's default) or 1..{MAX_THREADS}, got {count}")
+    return count
+
+
 def _installed_version() -> str:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -80,6 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
         "simulate captures, reconstruct, learn and search patterns, export them, compare methods.",
     )
     parser.add_argument("--version", action="version", version=f"displex {_installed_version()}")
+    parser.add_argument("--threads", type=_thread_count, default=0, dest="torch_threads", metavar="T",
+                        help="torch threads for the command (default 0: torch's, one per core); 1 avoids the stalls of "
+                        "torch's thread pool when other programs keep the cores busy, which can make commands 10x slower")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     scenes = commands.add_parser("scenes", help="synthetic scene sets").add_subparsers(dest="scenes_command", required=True)
@@ -432,6 +447,20 @@ def _run(argv: list[str] | None) -> int:
     except _UsageError as err:
         print(f"displex: error: {str(err).removeprefix('displex ').removeprefix('displex: ')}", file=sys.stderr)
         return 2
+    if not args.torch_threads:
+        return _handle(args)
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(args.torch_threads)
+    try:
+        return _handle(args)
+    finally:  # run() is also called in-process
+        torch.set_num_threads(previous)
+
+
+def _handle(args) -> int:
+    """Run the parsed command; the exit status and its one-line messages are those of ``run``."""
     try:
         args.handler(args)
     except KeyboardInterrupt:

@@ -160,8 +160,9 @@ class Minimum:
 class _Tracker:
     """The NLopt callback: evaluates, records, keeps the best point, enforces the budget.
 
-    Exceptions never cross NLopt's C code (some algorithms, e.g. GN_CRS2_LM, mangle them): the
-    callback stores the exception, asks NLopt to stop and returns the best value so far.
+    Exceptions, KeyboardInterrupt included, never cross NLopt's C code (some algorithms, e.g.
+    GN_CRS2_LM, mangle them into chained SystemErrors): the callback stores the exception, asks
+    NLopt to stop and returns the best value so far; ``minimise`` re-raises it.
     """
 
     def __init__(self, evaluate, maxeval: int, low: np.ndarray, high: np.ndarray, on_evaluation):
@@ -177,6 +178,15 @@ class _Tracker:
         self._cache: dict = {}
 
     def __call__(self, x: np.ndarray, grad: np.ndarray) -> float:
+        try:
+            return self._call(x, grad)
+        except BaseException as err:  # noqa: BLE001  (re-raised or reported after NLopt returns; Ctrl-C too)
+            self.error = self.error or err
+            self._stop()
+            grad[:] = 0.0
+            return self.best_value
+
+    def _call(self, x: np.ndarray, grad: np.ndarray) -> float:
         # Some algorithms step a rounding error outside the bounds; the generators reject that.
         x = np.clip(np.asarray(x, dtype=np.float64), self.low, self.high)
         key = x.tobytes()
@@ -189,13 +199,7 @@ class _Tracker:
             grad[:] = 0.0
             return self.best_value
         else:
-            try:
-                value, gradient = self.evaluate(x.copy(), need_gradient)
-            except Exception as err:  # noqa: BLE001  (re-raised or reported after NLopt returns)
-                self.error = err
-                self._stop()
-                grad[:] = 0.0
-                return self.best_value
+            value, gradient = self.evaluate(x.copy(), need_gradient)
             value = float(value)
             if not math.isfinite(value):
                 self.error = FloatingPointError(f"the objective returned {value} at {x.tolist()}")
