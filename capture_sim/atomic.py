@@ -36,12 +36,17 @@ def refuse_overwriting(outputs, inputs) -> None:
 
 
 def check_replaceable(path: str | Path) -> None:
-    """Raise ``InputError`` if ``path`` exists and is not a regular file: a rename would silently
-    replace a device, FIFO or socket (e.g. /dev/null run as root), and a folder would fail with
-    the temporary file's name."""
+    """Raise ``InputError`` if ``path`` exists and is not a regular file (a rename would silently
+    replace a device, FIFO or socket, e.g. /dev/null run as root, and a folder would fail with the
+    temporary file's name), or if a file stands where one of its folders would be created."""
     path = Path(path)
     if path.exists() and not path.is_file():
         raise InputError(f"cannot write {path}: it exists and is not a regular file")
+    for folder in path.absolute().parents:  # the nearest existing folder must be one
+        if folder.exists():
+            if not folder.is_dir():
+                raise InputError(f"cannot write {path}: {folder} is a file, not a folder")
+            break
 
 
 def check_output_folder(path: str | Path, command: str) -> None:

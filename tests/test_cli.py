@@ -191,6 +191,12 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         (["search", "--maxeval", "2", "--scenes", str(tmp_path / "twin"), "--out", str(tmp_path / "twin" / scene_file.name)], "would destroy"),
         (["train", "--out", str(good)], "pattern files are written as .npz"),  # a .npy name, refused before learning
         (["import-frames", str(tmp_path), "--out", str(tmp_path / "p.png")], "name the output *.npz"),
+        # Outputs under a file, or a folder where a file goes: refused before the work, not after it.
+        (["search", "--maxeval", "2", "--scenes", str(scene_file), "--out", str(good_npz / "x.npz")], "is a file, not a folder"),
+        (["train", "--steps", "1", "--scenes", str(scene_file), "--out", str(good_npz / "x.npz")], "is a file, not a folder"),
+        (["invrender", "--scene", str(scene_file), "--json", str(good_npz / "x.json")], "is a file, not a folder"),
+        (["invrender", "--scene", str(scene_file), "--out", str(good_npz)], "is a file; invrender writes a folder"),
+        (["bench", "sim", "--repeats", "1", "--json", str(tmp_path / "twin")], "exists and is not a regular file"),
         (["bench", "ps", "--sweep", "--json", str(tmp_path / "sweep.png")], "would destroy"),
         # An output path that is a folder fails before any work (train used to learn first).
         (["train", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "folder.npz")], "exists and is not a regular file"),

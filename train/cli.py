@@ -336,6 +336,8 @@ def _invrender(args) -> None:
 
     from train.invrender_command import OUTPUT_FILES, InvRenderConfig, run_invrender
 
+    if args.out is not None:
+        check_output_folder(args.out, "invrender")
     outputs = [("--json", args.json), *((f"--out file {name}", None if args.out is None else args.out / name) for name in OUTPUT_FILES)]
     refuse_overwriting(outputs, [("--scene", args.scene), ("--patterns file", None if args.patterns == "olat" else args.patterns)])
     changes = dict(scene=args.scene, patterns=args.patterns, basis=args.basis, noise=args.noise, seed=args.seed, rig=args.rig, json=args.json, out=args.out,
@@ -376,6 +378,7 @@ def _bench(args) -> None:
         if args.json is not None:
             print(f"wrote {args.json} and {args.json.with_suffix('.png')}")
         return
+    refuse_overwriting([("--json", args.json)], [])  # before minutes of timing, not after
     print(json.dumps(run_bench(args.target, args.json, args.repeats), indent=2))
 
 
