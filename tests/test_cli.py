@@ -196,6 +196,7 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         (["train", "--steps", "1", "--scenes", str(scene_file), "--out", str(good_npz / "x.npz")], "is a file, not a folder"),
         (["invrender", "--scene", str(scene_file), "--json", str(good_npz / "x.json")], "is a file, not a folder"),
         (["invrender", "--scene", str(scene_file), "--out", str(good_npz)], "is a file; invrender writes a folder"),
+        (["invrender", "--scene", str(scene_file), "--patterns", "olat", "--exposure", "5"], "OLAT captures are always auto-exposed"),
         (["bench", "sim", "--repeats", "1", "--json", str(tmp_path / "twin")], "exists and is not a regular file"),
         (["bench", "ps", "--sweep", "--json", str(tmp_path / "sweep.png")], "would destroy"),
         # An output path that is a folder fails before any work (train used to learn first).
@@ -481,3 +482,10 @@ def test_threads_option_sets_torch_threads_for_the_command_only(monkeypatch, cap
     assert torch.get_num_threads() == before
     assert run(["--threads", "-1", "patterns", "list"]) == 2
     assert "thread count must be 0" in capsys.readouterr().err
+
+
+def test_unknown_config_keys_are_not_blamed_on_flags(tmp_path, scene_file, capsys):
+    """A training config given to search: its keys are unknown there, whatever --scenes says."""
+    assert run(["search", "--config", "configs/train/default.toml", "--scenes", str(scene_file), "--out", str(tmp_path / "s.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "unknown key(s)" in err and "set by" not in err, err

@@ -73,7 +73,9 @@ def load_config(cls, path: str | Path | None, overrides: dict | None = None, fla
     try:
         return config_from_dict(cls, values, source=str(path or cls.__name__))
     except InputError as err:
-        named = [flag for key, flag in (flags or {}).items() if key in given and re.search(rf"\b{key}\b", str(err))]
+        # The list of known keys after an unknown-key error names every field: not a culprit.
+        subject = str(err).split("; known:")[0]
+        named = [flag for key, flag in (flags or {}).items() if key in given and re.search(rf"\b{key}\b", subject)]
         if not named:
             raise
         raise InputError(f"{err} (set by {', '.join(named)})") from None

@@ -119,6 +119,8 @@ class InvRenderConfig:
         if not 0 <= self.threads <= MAX_THREADS:
             raise InputError(f"--threads must be 0 (torch's default) or 1..{MAX_THREADS}, got {self.threads}")
         parse_exposure(str(self.exposure))
+        if self.patterns == "olat" and str(self.exposure) not in ("rig", "auto"):
+            raise InputError(f"--exposure {self.exposure} applies to pattern captures; OLAT captures are always auto-exposed (drop it or pass --patterns)")
 
     def to_dict(self) -> dict:
         values = asdict(self)
