@@ -201,7 +201,7 @@ def default_scene_specs(seed: int = 0) -> dict[str, list[SceneSpec]]:
 
 
 def default_scene_set(rig: Rig, height: int = 128, width: int = 153, seed: int = 0,
-                      cast_shadows: bool = False) -> dict[str, list[Scene]]:
+                      cast_shadows: bool = False, progress: bool = True) -> dict[str, list[Scene]]:
     """Synthesise the default scene set in memory (about 35 MB per scene at 128 x 153 per stack).
 
     Args:
@@ -209,14 +209,16 @@ def default_scene_set(rig: Rig, height: int = 128, width: int = 153, seed: int =
         height, width: image size in pixels.
         seed: set seed (see ``default_scene_specs``); same seed, identical arrays.
         cast_shadows: trace cast shadows (slower).
+        progress: show a tqdm progress bar (tens of seconds at the default size).
 
     Returns:
         ``{"train": [6 scenes], "test": [4 scenes]}``.
     """
-    return {
-        split: [synthesize_scene(s.shape, s.material, rig, height, width, s.seed, cast_shadows, s.name) for s in specs]
-        for split, specs in default_scene_specs(seed).items()
-    }
+    jobs = [(split, spec) for split, specs in default_scene_specs(seed).items() for spec in specs]
+    scenes: dict[str, list[Scene]] = {split: [] for split, _ in jobs}
+    for split, spec in tqdm(jobs, desc="synthesising the default scenes", unit="scene", disable=not progress, leave=False):
+        scenes[split].append(synthesize_scene(spec.shape, spec.material, rig, height, width, spec.seed, cast_shadows, spec.name))
+    return scenes
 
 
 def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int = 153, seed: int = 0,
