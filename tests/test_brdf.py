@@ -1,6 +1,7 @@
 """The Cook-Torrance GGX lobe against closed forms, and its float32 behaviour at low roughness."""
 import math
 
+import pytest
 import torch
 
 from capture_sim.brdf import cook_torrance_specular, ggx_distribution
@@ -27,3 +28,16 @@ def test_low_roughness_peak_is_finite_in_float32():
         assert abs(float(lobe32.detach()) / float(lobe64) - 1) < 1e-3, roughness
         alpha = max(roughness**2, 1e-4)
         assert abs(float(ggx_distribution(torch.tensor(1.0), torch.tensor(alpha))) * math.pi * alpha**2 - 1) < 1e-4
+
+
+def test_schlick_fresnel_scales_the_lobe_by_its_closed_form():
+    """F = F0 + (1 - F0)(1 - v.h)^5 with F0 = 0.04, at normal incidence and at grazing half angles."""
+    normal = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    for light_deg, view_deg in ((0.0, 0.0), (30.0, -20.0), (70.0, -75.0)):
+        light = torch.tensor([math.sin(math.radians(light_deg)), 0.0, math.cos(math.radians(light_deg))], dtype=torch.float64)
+        view = torch.tensor([math.sin(math.radians(view_deg)), 0.0, math.cos(math.radians(view_deg))], dtype=torch.float64)
+        half = (light + view) / (light + view).norm()
+        expected = 0.04 + 0.96 * (1.0 - float(view @ half)) ** 5
+        roughness = torch.tensor(0.5, dtype=torch.float64)
+        ratio = cook_torrance_specular(normal, light, view, roughness, "schlick") / cook_torrance_specular(normal, light, view, roughness)
+        assert float(ratio) == pytest.approx(expected, rel=1e-12)
