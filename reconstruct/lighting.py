@@ -146,11 +146,10 @@ class LightField:
         return weights, bad
 
     def _lit(self, rows, normal: torch.Tensor) -> torch.Tensor:
-        """(n, K) shadow masks of pixels ``rows`` with normals (3, n) as 1.0 / 0.0 in the field's
-        dtype (normals are rounded to it first): p_k . n - X . n > 0. The comparison runs in place
-        on the float product (a bool mask would need a type promotion in every later product)."""
+        """(n, K) shadow masks of pixels ``rows`` with normals (3, n) as 1.0 / 0.0 in the working
+        dtype: p_k . n - X . n > 0. The comparison runs in place on the float product (a bool
+        mask would need a type promotion in every later product)."""
         points = _take_rows(self.points, rows)
-        normal = normal.to(points.dtype)  # the solvers' normals may be in a wider dtype (``SOLVE_DTYPE``)
         return torch.addmm(-(points * normal.T).sum(1, keepdim=True), normal.T, self._lights_t).gt_(0)
 
     def sees_all(self, index, normal: torch.Tensor) -> torch.Tensor:
@@ -160,7 +159,6 @@ class LightField:
         stays near ``SEES_ALL_FLOATS`` entries: per cache block, the calls' overhead would cost
         more than the test; in one piece, the product of a full frame would take ~100 MB."""
         points = self.points.T if index is None else _take_rows(self.points, index).T
-        normal = normal.to(points.dtype)
         count = normal.shape[1]
         step = max(1, SEES_ALL_FLOATS // self._corners.shape[0])
         if count <= step:

@@ -44,7 +44,7 @@ import torch
 
 from capture_sim.errors import InputError, check_array, check_field_types
 from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, finite_albedo, lighting_matrix
-from reconstruct.pixel_solve import CONDITION_CAP, SOLVE_DTYPE, Moments, alternate, implicit_step, normalised_moments, relative_residual, take_pixels
+from reconstruct.pixel_solve import CONDITION_CAP, Moments, alternate, implicit_step, normalised_moments, relative_residual, take_pixels
 from reconstruct.shadow_search import restarted_search
 
 FLAG_NAMES = ("dark", "saturated", "ill_conditioned", "back_facing", "bad_geometry", "not_converged", "poor_fit", "grazing")
@@ -62,9 +62,8 @@ class PSConfig:
 
     damping: float = 1e-9
     """Tikhonov damping relative to each 3x3 system's scale: lambda = damping * trace / 3. Raised
-    to at least 8 machine epsilons of the systems' dtype (``pixel_solve.SOLVE_DTYPE``, float64:
-    about 2e-15) so that damped systems stay positive definite after rounding. Larger values bias
-    ill-conditioned pixels."""
+    to at least 8 machine epsilons of the working dtype (about 1e-6 in float32) so that damped
+    systems stay positive definite after rounding. Larger values bias ill-conditioned pixels."""
     max_shadow_iterations: int = 20
     """Cap on attached-shadow mask updates (each re-solves only pixels whose mask changed; the
     first fits every pixel, so at least 1)."""
@@ -246,10 +245,8 @@ class PatternEvaluator:
         return self.field.masks_differ(index, first, second)
 
     def evaluate(self, index, normal):
-        """Moments of the shadow masks of normals (3, n) of pixels ``index``, in ``SOLVE_DTYPE``
-        (formed from the lighting vectors converted to it; kept vectors stay in the inputs' dtype)."""
         count = normal.shape[1]
-        moments = Moments.empty(count, SOLVE_DTYPE, self.num_patterns, self.lighting.dtype)
+        moments = Moments.empty(count, normal.dtype, self.num_patterns)
         for start, stop, vectors in self.field.vector_blocks(index, normal, self.lighting):
             if index is None:
                 captures, weight, scale = self.captures[..., start:stop], self.equation_weight[..., start:stop], self.capture_scale[start:stop]
@@ -257,16 +254,13 @@ class PatternEvaluator:
                 pixels = index[start:stop]
                 captures, weight = take_pixels(self.captures, pixels), take_pixels(self.equation_weight, pixels)
                 scale = self.capture_scale[pixels]
-            moments.write(start, stop, normalised_moments(vectors.to(SOLVE_DTYPE), captures.to(SOLVE_DTYPE), weight.to(SOLVE_DTYPE), scale.to(SOLVE_DTYPE)), vectors)
+            moments.write(start, stop, normalised_moments(vectors, captures, weight, scale), vectors)
         return moments
 
 
 def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, block_size: int) -> PSResult:
-    """Solve N pixels: captures (M, N, 3), lighting matrix (K, 12 M), points (N, 3). The search
-    and the per-pixel algebra run in ``SOLVE_DTYPE``, the gradient's graph and the result in the
-    inputs' dtype."""
+    """Solve N pixels: captures (M, N, 3), lighting matrix (K, 12 M), points (N, 3)."""
     track_gradient = torch.is_grad_enabled() and (captures.requires_grad or lighting.requires_grad)
-    dtype = captures.dtype
     captures = captures.permute(0, 2, 1).contiguous()  # (M, 3, N): pixels last
     with torch.no_grad():
         light_field = LightField(points, lights, falloff, config.min_distance, block_size)
@@ -276,24 +270,22 @@ def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, 
         def fit(albedo, moments):
             return alternate(albedo, moments, config.damping, config.tolerance_deg, config.max_alternations)
 
-        initial_albedo = (captures.detach() / capture_scale).amax(dim=0).clamp_min(0).to(SOLVE_DTYPE)
-        view = light_field.view.T.to(SOLVE_DTYPE)
+        initial_albedo = (captures.detach() / capture_scale).amax(dim=0).clamp_min(0)
+        view = light_field.view.T.contiguous()
         state, condition = restarted_search(evaluator, fit, initial_albedo, view, config)
 
     normal, albedo = state.normal, state.albedo
     if track_gradient:
         vectors = differentiable_vectors(light_field, state.normal, lighting, state.moments.vectors)
-        # The derivative needs no float64: the graph stays in the inputs' dtype (half the memory).
         graph_moments = normalised_moments(vectors, captures, equation_weight, capture_scale)
-        graph_albedo, graph_normal = implicit_step(albedo.to(dtype), graph_moments, working_config(config, dtype).damping)
+        graph_albedo, graph_normal = implicit_step(albedo, graph_moments, config.damping)
         # Values stay the searched ones (identical with and without gradient tracking); only the
         # derivative comes from the Newton step.
-        albedo = albedo.to(dtype) + (graph_albedo - graph_albedo.detach())
-        normal = normal.to(dtype) + (graph_normal - graph_normal.detach())
-    albedo = albedo * (state.moments.capture_scale / state.moments.lighting_scale).to(dtype)
+        albedo = albedo + (graph_albedo - graph_albedo.detach())
+        normal = normal + (graph_normal - graph_normal.detach())
+    albedo = albedo * (state.moments.capture_scale / state.moments.lighting_scale)
     flags = {"dark": dark, "saturated": saturated, "not_converged": ~state.converged}
-    fit_residual = relative_residual(state.normal, state.moments)
-    return finalise(normal.T.to(dtype), albedo.T.to(dtype), condition.to(dtype), fit_residual.to(dtype), flags, light_field, config)
+    return finalise(normal.T, albedo.T, condition, relative_residual(state.normal, state.moments), flags, light_field, config)
 
 
 def concatenate_results(results: list[PSResult], dtype) -> PSResult:
@@ -352,7 +344,7 @@ def solve_pixels(solve_block, captures, emission, points, pixel_index, lights, c
     lights = torch.as_tensor(lights).detach().to(dtype)
     scale = emission_scale(emission)
     lighting = lighting_matrix(emission / scale, lights)
-    config = working_config(config, SOLVE_DTYPE)
+    config = working_config(config, dtype)
     count = points.shape[0] if pixel_index is None else pixel_index.numel()
     if count == 0:
         # No pixels: empty outputs that are still on the inputs' graph, as every other result is.
@@ -387,9 +379,8 @@ def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSC
         config: solver settings.
         chunk_size: pixels per block of (pixels x lights) work; bounds the temporaries (the
             unshadowed N x K weights are kept once). Results depend on it (and on the thread
-            count) only through the rounding of the lighting products in the inputs' dtype (the
-            per-pixel algebra runs in float64): about 1e-3 degree in float32 on pixels of
-            condition ~1e3 (tests/test_photometric_stereo.py).
+            count) only through float rounding: in float32, up to a few hundredths of a degree on
+            well-conditioned pixels, more on ill-conditioned ones.
 
     Returns:
         PSResult with (N, 3) normals and albedo, (N,) valid, condition, residual and flags. Differentiable

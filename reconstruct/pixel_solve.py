@@ -20,14 +20,6 @@ import torch
 
 from reconstruct.lighting import lighting_moments
 
-SOLVE_DTYPE = torch.float64
-"""dtype of the full solvers' moments and per-pixel 3x3 algebra (alternations, shadow search,
-condition numbers), whatever the inputs' dtype; the (pixels x lights) products stay in the
-inputs' dtype, and so does the gradient's graph (``implicit_step``), which needs no more. In
-float32 the adjugate solves and alternations of moderately conditioned pixels (condition ~1e3)
-rounded to errors of up to a degree on noise-free data, stalled the alternation (flagging
-not_converged from rounding alone) and moved by 2 degrees with the block size; float64 costs
-about a quarter more forward time (``displex bench ps``) and no memory to speak of."""
 CONDITION_CAP = 1e12
 """Reported condition numbers are capped here (singular systems report exactly this value)."""
 JACOBIAN_BLOCK = 32768
@@ -172,24 +164,19 @@ class Moments:
         if self.vectors is not None:
             put_pixels(self.vectors, index, other.vectors)
 
-    def to(self, dtype) -> "Moments":
-        """These moments in ``dtype`` (differentiable; vectors are not carried)."""
-        return Moments(*(getattr(self, name).to(dtype) for name in self._FIELDS))
-
     def detach(self) -> "Moments":
         return Moments(*(getattr(self, name).detach() for name in self._FIELDS))
 
     @staticmethod
-    def empty(count: int, dtype, num_patterns: int | None = None, vector_dtype=None) -> "Moments":
-        """Uninitialised moments of ``count`` pixels (with room for vectors of ``num_patterns``,
-        in ``vector_dtype``, default ``dtype``)."""
+    def empty(count: int, dtype, num_patterns: int | None = None) -> "Moments":
+        """Uninitialised moments of ``count`` pixels (with room for vectors of ``num_patterns``)."""
         return Moments(
             torch.empty((3, 6, count), dtype=dtype),
             torch.empty((3, 3, count), dtype=dtype),
             torch.empty((3, count), dtype=dtype),
             torch.empty(count, dtype=dtype),
             torch.empty(count, dtype=dtype),
-            None if num_patterns is None else torch.empty((num_patterns, 3, 3, count), dtype=vector_dtype or dtype),
+            None if num_patterns is None else torch.empty((num_patterns, 3, 3, count), dtype=dtype),
         )
 
     def write(self, start: int, stop: int, other: "Moments", vectors: torch.Tensor | None = None) -> None:
@@ -295,8 +282,8 @@ def alternate(albedo: torch.Tensor, moments: Moments, damping: float, tolerance_
 
     A pixel stops when its normal moves by at most ``tolerance_deg`` (converged), or when a move
     fails to shrink. A non-shrinking move no larger than the rounding level sqrt(eps) of the dtype
-    (below the default tolerance in float64, the solvers' ``SOLVE_DTYPE``; about 0.02 deg in
-    float32) is rounding noise that further steps cannot remove: converged. A larger one means
+    (about 0.02 deg in float32; below the default tolerance in float64) is rounding noise of an
+    ill-conditioned float32 solve that further steps cannot remove: converged. A larger one means
     progress too slow to finish (nearly rank-deficient systems, where the alternation would run to
     ``max_alternations`` without getting anywhere useful): the pixel stops, not converged, so
     callers flag it and the shadow search may restart it. Only pixels still moving are iterated.

@@ -41,7 +41,7 @@ from reconstruct.photometric_stereo import (
     unscale_albedo,
     working_config,
 )
-from reconstruct.pixel_solve import SOLVE_DTYPE, Moments, albedo_step, damped_solve, relative_residual, scaled_moments, unit
+from reconstruct.pixel_solve import Moments, albedo_step, damped_solve, relative_residual, scaled_moments, unit
 from reconstruct.shadow_search import restarted_search
 
 MAX_PIXELS_PER_SOLVE = 1 << 19
@@ -106,13 +106,12 @@ class _OlatEvaluator:
         captures: (K, P, 3) OLAT captures (any float dtype; not copied).
         pixel_index: (N,) long rows of ``captures`` solved, or None for all P = N.
         config: WoodhamConfig.
-
-    Moments are formed in the captures' working dtype and returned in ``SOLVE_DTYPE``.
+        dtype: working dtype.
     """
 
-    def __init__(self, light_field: LightField, light_emission, captures, pixel_index, config):
+    def __init__(self, light_field: LightField, light_emission, captures, pixel_index, config, dtype):
         self.field, self.light_emission, self.captures = light_field, light_emission, captures
-        self.pixel_index, self.config, self.dtype = pixel_index, config, light_emission.dtype
+        self.pixel_index, self.config, self.dtype = pixel_index, config, dtype
         self._flags = None
 
     def _block(self, rows):
@@ -136,7 +135,7 @@ class _OlatEvaluator:
         return self.field.masks_differ(index, first, second)
 
     def evaluate(self, index, normal):
-        moments = Moments.empty(normal.shape[1], SOLVE_DTYPE)
+        moments = Moments.empty(normal.shape[1], self.dtype)
         record = index is None and self._flags is None
         if record:
             dark = torch.empty(normal.shape[1], dtype=torch.bool)
@@ -161,14 +160,13 @@ def _solve_block(evaluator, light_field: LightField, config, dark_and_saturated=
     def fit(albedo, moments):
         return woodham_fit(moments, config.damping)
 
-    count, dtype = light_field.num_pixels, light_field.points.dtype
-    view = light_field.view.T.to(SOLVE_DTYPE)
-    state, condition = restarted_search(evaluator, fit, torch.ones((3, count), dtype=SOLVE_DTYPE), view, config)
+    count = light_field.num_pixels
+    view = light_field.view.T.contiguous()
+    state, condition = restarted_search(evaluator, fit, torch.ones((3, count), dtype=view.dtype), view, config)
     dark, saturated = evaluator.capture_flags() if dark_and_saturated is None else dark_and_saturated
     albedo = state.albedo * (state.moments.capture_scale / state.moments.lighting_scale)
     flags = {"dark": dark, "saturated": saturated, "not_converged": ~state.converged}
-    fit_residual = relative_residual(state.normal, state.moments)
-    return finalise(state.normal.T.to(dtype), albedo.T.to(dtype), condition.to(dtype), fit_residual.to(dtype), flags, light_field, config)
+    return finalise(state.normal.T, albedo.T, condition, relative_residual(state.normal, state.moments), flags, light_field, config)
 
 
 def _olat_emission(emission: torch.Tensor):
@@ -215,7 +213,7 @@ def _solve(captures, emission, points, pixel_index, lights, falloff, config, chu
     dtype = torch.promote_types(torch.promote_types(captures.dtype, (emission if light_emission is None else light_emission).dtype), torch.float32)
     points = torch.as_tensor(points).detach().to(dtype)
     lights = torch.as_tensor(lights).detach().to(dtype)
-    config = working_config(config, SOLVE_DTYPE)
+    config = working_config(config, dtype)
     if light_emission is not None:
         light_emission = light_emission.to(dtype)
         scale = emission_scale(light_emission)
@@ -234,7 +232,7 @@ def _solve(captures, emission, points, pixel_index, lights, falloff, config, chu
             rows = block_index = pixel_index[start : start + MAX_PIXELS_PER_SOLVE]
         light_field = LightField(points[rows], lights, falloff, config.min_distance, chunk_size)
         if light_emission is not None:
-            evaluator = _OlatEvaluator(light_field, light_emission, captures.detach(), block_index, config)
+            evaluator = _OlatEvaluator(light_field, light_emission, captures.detach(), block_index, config, dtype)
             results.append(_solve_block(evaluator, light_field, config))
         else:
             block_captures = captures[:, rows].detach().to(dtype).permute(0, 2, 1).contiguous()
