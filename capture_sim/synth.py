@@ -256,13 +256,22 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int
     # index.json is written last: an interrupted run must not leave an earlier set's index over a
     # folder of mixed scenes (``displex demo`` reuses a folder whose index matches its settings).
     index_path.unlink(missing_ok=True)
-    for split, spec in tqdm(jobs, desc="synthesising scenes", unit="scene", disable=not progress):
-        scene = synthesize_scene(spec.shape, spec.material, rig, height, width, spec.seed, cast_shadows, spec.name)
-        relative = Path(split) / f"{spec.name}.npz"
-        save_scene(scene, out_dir / relative)
-        index["splits"][split].append({
-            "name": spec.name, "file": relative.as_posix(), "shape": spec.shape,
-            "material": spec.material, "seed": spec.seed,
-        })
+    written = []
+    try:
+        for split, spec in tqdm(jobs, desc="synthesising scenes", unit="scene", disable=not progress):
+            scene = synthesize_scene(spec.shape, spec.material, rig, height, width, spec.seed, cast_shadows, spec.name)
+            relative = Path(split) / f"{spec.name}.npz"
+            save_scene(scene, out_dir / relative)
+            written.append(out_dir / relative)
+            index["splits"][split].append({
+                "name": spec.name, "file": relative.as_posix(), "shape": spec.shape,
+                "material": spec.material, "seed": spec.seed,
+            })
+    except BaseException:
+        # A failed or interrupted set must not leave scenes that a later --scenes DIR/train would
+        # pick up as if they were the whole split.
+        for path in written:
+            path.unlink(missing_ok=True)
+        raise
     write_json(index_path, index)
     return index_path

@@ -359,6 +359,7 @@ def test_interrupted_scene_set_leaves_no_index(rig, tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         write_scene_set(out, rig, height=12, width=14, seed=1, progress=False)
     assert len(calls) == 1 and not (out / "index.json").exists()
+    assert not calls[0].exists()  # the interrupted run's scenes are removed, not left as a partial split
 
 
 def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tmp_path):
