@@ -5,6 +5,8 @@ else is a bug and keeps its traceback.
 """
 from __future__ import annotations
 
+import dataclasses
+import math
 from pathlib import Path
 from typing import Sequence
 
@@ -49,9 +51,6 @@ def check_field_types(config) -> None:
     """Refuse fields of a settings dataclass whose values do not match their annotation: an
     ``int`` field must hold a whole number, a ``float`` field a real number that is not NaN (an
     int is accepted; bools never are). For configs built in code; TOML loading checks types first."""
-    import dataclasses
-    import math
-
     for field in dataclasses.fields(config):
         value = getattr(config, field.name)
         annotation = field.type if isinstance(field.type, str) else getattr(field.type, "__name__", "")

@@ -214,11 +214,18 @@ def default_scene_set(rig: Rig, height: int = 128, width: int = 153, seed: int =
     Returns:
         ``{"train": [6 scenes], "test": [4 scenes]}``.
     """
-    jobs = [(split, spec) for split, specs in default_scene_specs(seed).items() for spec in specs]
-    scenes: dict[str, list[Scene]] = {split: [] for split, _ in jobs}
-    for split, spec in tqdm(jobs, desc="synthesising the default scenes", unit="scene", disable=not progress, leave=False):
-        scenes[split].append(synthesize_scene(spec.shape, spec.material, rig, height, width, spec.seed, cast_shadows, spec.name))
+    scenes: dict[str, list[Scene]] = {split: [] for split in default_scene_specs(seed)}
+    for split, _, scene in _synthesised(rig, height, width, seed, cast_shadows, "synthesising the default scenes", progress, leave=False):
+        scenes[split].append(scene)
     return scenes
+
+
+def _synthesised(rig: Rig, height: int, width: int, seed: int, cast_shadows: bool, description: str, progress: bool, leave: bool = True):
+    """Yield (split, spec, scene) for every scene of the default set, one at a time, with a bar
+    (``leave``: keep the finished bar on screen)."""
+    jobs = [(split, spec) for split, specs in default_scene_specs(seed).items() for spec in specs]
+    for split, spec in tqdm(jobs, desc=description, unit="scene", disable=not progress, leave=leave):
+        yield split, spec, synthesize_scene(spec.shape, spec.material, rig, height, width, spec.seed, cast_shadows, spec.name)
 
 
 def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int = 153, seed: int = 0,
@@ -241,8 +248,6 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int
         Path of the written ``index.json``.
     """
     out_dir = Path(out_dir)
-    specs = default_scene_specs(seed)
-    jobs = [(split, spec) for split, split_specs in specs.items() for spec in split_specs]
     index = {
         "generator": GENERATOR,
         "rig": rig.name,
@@ -250,7 +255,7 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int
         "width": int(width),
         "seed": int(seed),
         "cast_shadows": bool(cast_shadows),
-        "splits": {split: [] for split in specs},
+        "splits": {split: [] for split in default_scene_specs(seed)},
     }
     index_path = out_dir / "index.json"
     # index.json is written last: an interrupted run must not leave an earlier set's index over a
@@ -258,8 +263,7 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int
     index_path.unlink(missing_ok=True)
     written = []
     try:
-        for split, spec in tqdm(jobs, desc="synthesising scenes", unit="scene", disable=not progress):
-            scene = synthesize_scene(spec.shape, spec.material, rig, height, width, spec.seed, cast_shadows, spec.name)
+        for split, spec, scene in _synthesised(rig, height, width, seed, cast_shadows, "synthesising scenes", progress):
             relative = Path(split) / f"{spec.name}.npz"
             save_scene(scene, out_dir / relative)
             written.append(out_dir / relative)

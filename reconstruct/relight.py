@@ -71,6 +71,11 @@ def split_lights(num_lights: int, test_every: int = TEST_EVERY, validation_every
     return LightSplit(fit=fit, test=test, validation=fit[is_validation], train=fit[~is_validation])
 
 
+def _holds_integers(values: torch.Tensor) -> bool:
+    """Whether an index tensor has an integer dtype (not float, complex or bool)."""
+    return not (values.is_floating_point() or values.is_complex() or values.dtype == torch.bool)
+
+
 def olat_emission(light_index: torch.Tensor, num_lights: int, exposure: float, dtype=torch.float32) -> torch.Tensor:
     """(M, K, 3) effective emission of OLAT captures of the lights ``light_index`` (M of them).
 
@@ -80,7 +85,7 @@ def olat_emission(light_index: torch.Tensor, num_lights: int, exposure: float, d
     if not exposure > 0 or not math.isfinite(exposure):
         raise InputError(f"exposure must be positive and finite, got {exposure}")
     index = torch.as_tensor(light_index)
-    if index.is_floating_point() or index.is_complex() or index.dtype == torch.bool:
+    if not _holds_integers(index):
         raise InputError(f"light indices must be integers, got dtype {index.dtype}")
     index = index.to(torch.int64)
     if index.numel() and (int(index.min()) < 0 or int(index.max()) >= num_lights):
@@ -138,7 +143,7 @@ def relighting_metrics(predicted: torch.Tensor, truth: torch.Tensor, pixel_index
     pixel_index = torch.as_tensor(pixel_index)
     if pixel_index.numel() == 0:
         raise InputError("relighting metrics need at least one pixel")
-    if pixel_index.is_floating_point() or pixel_index.dtype == torch.bool or int(pixel_index.min()) < 0 or int(pixel_index.max()) >= height * width:
+    if not _holds_integers(pixel_index) or int(pixel_index.min()) < 0 or int(pixel_index.max()) >= height * width:
         raise InputError(f"pixel_index must hold integer indices into the {height} x {width} image")
     if torch.unique(pixel_index).numel() != pixel_index.numel():
         raise InputError("pixel_index lists a pixel more than once")

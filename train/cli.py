@@ -370,8 +370,8 @@ def _bench(args) -> None:
             raise InputError(f"--sweep applies to target ps, not {args.target!r}")
         from train.bench import DEFAULT_SIZE, run_sweep
 
-        if args.json is not None:  # the chart goes next to the JSON, same name, .png
-            refuse_overwriting([("--json", args.json), ("chart", args.json.with_suffix(".png"))], [])
+        # The chart goes next to the JSON, same name, .png; both are checked before the work.
+        refuse_overwriting([("--json", args.json), ("chart", None if args.json is None else args.json.with_suffix(".png"))], [])
         document = run_sweep(args.json, args.size or DEFAULT_SIZE)
         for row in document["methods"]:
             print(f"{row['label']:36s} " + "  ".join(f"{scale:g}: {mae:.3f}" for scale, mae in zip(document["noise_scales"], row["mae"])))
