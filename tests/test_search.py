@@ -1,5 +1,6 @@
 """NLopt search: the generic minimiser on closed-form objectives, and `run_search` on tiny scenes."""
 import csv
+import dataclasses
 import json
 import time
 import warnings
@@ -16,7 +17,9 @@ from capture_sim.synth import synthesize_scene
 from patterns.families import default_vector, get_family
 from patterns.io import load_patterns
 from train.scene_pixels import scene_pixels
-from train.search import ALGORITHMS, PatternObjective, SearchConfig, minimise, prepare_scenes, run_search, trace_csv
+import train.search
+from train.search import (ALGORITHMS, MAX_QUADRATIC_PARAMETERS, PatternObjective, SearchConfig, minimise, output_files,
+                          partial_trace_path, prepare_scenes, run_search, trace_csv)
 
 SIZE = (24, 29)
 TARGET = np.array([0.3, -0.2, 0.6])
@@ -215,3 +218,57 @@ def test_ctrl_c_inside_the_objective_comes_out_as_keyboard_interrupt(algorithm):
     with pytest.raises(KeyboardInterrupt):
         minimise(interrupted, np.zeros(3), LOW, HIGH, algorithm, maxeval=50, seed=0)
     assert len(calls) == 5
+
+
+@pytest.mark.parametrize("algorithm", ["LN_BOBYQA", "LN_COBYLA"])
+def test_too_many_parameters_for_a_quadratic_algorithm_fail_before_the_scenes(monkeypatch, tmp_path, algorithm):
+    """tri_random at M = 8 has 9 * 16 * 3 * 8 = 3456 parameters: refused before any scene is made."""
+    def no_scenes(*args, **kwargs):
+        raise AssertionError("prepare_scenes was called")
+
+    monkeypatch.setattr(train.search, "prepare_scenes", no_scenes)
+    config = SearchConfig(family="tri_random", num_patterns=8, algorithm=algorithm, maxeval=3)
+    with pytest.raises(InputError, match="3456 parameters") as refused:
+        run_search(config, tmp_path / "big.npz", progress=False)
+    assert not any(tmp_path.iterdir())
+    # minimise refuses with the very same message.
+    size = MAX_QUADRATIC_PARAMETERS + 1
+    with pytest.raises(InputError) as also_refused:
+        minimise(quadratic, np.zeros(size), -np.ones(size), np.ones(size), algorithm, maxeval=3)
+    assert str(also_refused.value) == str(refused.value).replace("3456", str(size))
+    # A gradient algorithm takes the same search on to the scenes.
+    with pytest.raises(AssertionError, match="prepare_scenes"):
+        run_search(SearchConfig(family="tri_random", num_patterns=8, algorithm="LD_MMA", maxeval=3), tmp_path / "big.npz", progress=False)
+
+
+def test_interrupted_search_leaves_a_partial_trace_and_the_finished_run_untouched(scene_dir, tmp_path, monkeypatch):
+    """Ctrl-C after 13 evaluations: the 10 flushed ones are in .trace.partial.csv, and the files of
+    the earlier finished run with the same --out (trace, chart, patterns, config) are unchanged."""
+    out = tmp_path / "best.npz"
+    partial = tmp_path / "best.trace.partial.csv"
+    assert partial_trace_path(out) == partial and ("partial trace", partial) in output_files(out)
+    partial.write_text("a stale partial trace of an older interrupted run\n")
+    config = SearchConfig(family="tri_complementary", num_patterns=2, maxeval=12, scenes=(str(scene_dir),), scene_size=SIZE, pixels_per_scene=100)
+    run_search(config, out, progress=False)
+    assert not partial.exists()
+    finished = {name: (tmp_path / name).read_bytes() for name in ("best.npz", "best.trace.csv", "best.trace.png", "best.config.json")}
+    assert len(finished["best.trace.csv"].decode().splitlines()) == 1 + 12
+
+    evaluated = []
+    evaluate = PatternObjective.__call__
+
+    def interrupted(self, vector, need_gradient):
+        if len(evaluated) == 13:
+            raise KeyboardInterrupt
+        evaluated.append(vector.copy())
+        return evaluate(self, vector, need_gradient)
+
+    monkeypatch.setattr(PatternObjective, "__call__", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_search(dataclasses.replace(config, maxeval=30), out, progress=False)
+    assert len(evaluated) == 13
+    rows = list(csv.DictReader(partial.read_text().splitlines()))
+    assert [int(row["index"]) for row in rows] == list(range(10))
+    names = list(rows[0])[1:-2]
+    assert np.array_equal([[float(row[name]) for name in names] for row in rows], evaluated[:10])
+    assert {name: (tmp_path / name).read_bytes() for name in finished} == finished

@@ -220,6 +220,23 @@ class _Tracker:
             self.optimiser.force_stop()
 
 
+def check_parameter_count(algorithm: str, count: int) -> None:
+    """Raise ``InputError`` if ``algorithm`` cannot hold ``count`` parameters in memory.
+
+    ``minimise`` calls it, and ``run_search`` calls it before loading scenes, so a search that
+    would be refused fails at once, not after minutes of scene synthesis.
+
+    Args:
+        algorithm: one of ``ALGORITHMS``.
+        count: P, the number of parameters searched.
+    """
+    if algorithm in QUADRATIC_MEMORY_ALGORITHMS and count > MAX_QUADRATIC_PARAMETERS:
+        raise InputError(
+            f"{algorithm} keeps state that grows with the square of the parameter count, and this search has "
+            f"{count} parameters (at most {MAX_QUADRATIC_PARAMETERS}): use LD_MMA or LD_LBFGS, or a smaller M"
+        )
+
+
 STOPPING_ERRORS = (nlopt.RoundoffLimited, nlopt.ForcedStop, RuntimeError)
 """What NLopt raises when it stops early; the best point seen is still the answer."""
 
@@ -272,11 +289,7 @@ def minimise(
         raise InputError("bounds must be finite with low <= high")
     if ((start < low) | (start > high)).any():
         raise InputError("the start point lies outside the bounds")
-    if algorithm in QUADRATIC_MEMORY_ALGORITHMS and start.size > MAX_QUADRATIC_PARAMETERS:
-        raise InputError(
-            f"{algorithm} keeps state that grows with the square of the parameter count, and this search has "
-            f"{start.size} parameters (at most {MAX_QUADRATIC_PARAMETERS}): use LD_MMA or LD_LBFGS, or a smaller M"
-        )
+    check_parameter_count(algorithm, start.size)
     begun = time.perf_counter()
     tracker = _Tracker(evaluate, int(maxeval), low, high, on_evaluation or (lambda *_: None))
     # Gradient algorithms ask for the start's gradient first: compute it now so the cache serves it.
@@ -398,8 +411,17 @@ class PatternObjective:
 
 
 def trace_path(out: Path) -> Path:
-    """``<out stem>.trace.csv`` next to the pattern file."""
+    """``<out stem>.trace.csv`` next to the pattern file: the trace of the finished search."""
     return out.with_name(out.stem + ".trace.csv")
+
+
+def partial_trace_path(out: Path) -> Path:
+    """``<out stem>.trace.partial.csv`` next to the pattern file: the trace flushed during a search.
+
+    A separate name, so that an interrupted search never leaves a ``.trace.csv`` beside the pattern
+    file, chart and config record of an earlier finished search with the same ``out``.
+    """
+    return out.with_name(out.stem + ".trace.partial.csv")
 
 
 def trace_chart_path(out: Path) -> Path:
@@ -408,8 +430,10 @@ def trace_chart_path(out: Path) -> Path:
 
 
 def output_files(out: Path) -> list[tuple[str, Path]]:
-    """(what, path) of the files a search writing patterns to ``out`` writes."""
-    return [("--out", out), ("trace", trace_path(out)), ("trace chart", trace_chart_path(out)), ("config record", config_record_path(out))]
+    """(what, path) of the files a search writing patterns to ``out`` writes, the partial trace
+    included (written while it runs and removed when it finishes)."""
+    return [("--out", out), ("trace", trace_path(out)), ("partial trace", partial_trace_path(out)),
+            ("trace chart", trace_chart_path(out)), ("config record", config_record_path(out))]
 
 
 def trace_csv(names: list[str], history: list) -> str:
@@ -442,13 +466,23 @@ def trace_figure(history: list, title: str, caption: str):
     return fig
 
 
+def _remove_file(path: Path) -> None:
+    """Delete ``path`` if a file or link stands there (anything else is left for ``write_text`` to
+    refuse by name)."""
+    if path.is_file() or path.is_symlink():
+        path.unlink()
+
+
 def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, progress: bool = True) -> dict:
     """Search a family's parameters with NLopt and write the best patterns.
 
     Writes ``out`` (pattern .npz, patterns exactly as evaluated, meta with the family, algorithm,
     parameters, start and best MAE, evaluations), ``<out stem>.trace.csv`` (every evaluation),
     ``<out stem>.trace.png`` (objective against evaluation index) and ``<out stem>.config.json``;
-    TensorBoard scalars under ``logdir`` if given.
+    TensorBoard scalars under ``logdir`` if given. While it runs, every 10 evaluations go to
+    ``<out stem>.trace.partial.csv`` (a stale one from an earlier run is removed once the scenes
+    are loaded); a finished search removes it, and a search interrupted during its evaluations
+    (Ctrl-C, an error) leaves it and writes none of the other files.
 
     Args:
         config: search settings.
@@ -469,12 +503,16 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
     names = [p.name for p in parameters]
     low, high = family.bounds(config.num_patterns, rig.rows, rig.cols)
     start = default_vector(config.family, config.num_patterns, rig.rows, rig.cols, config.start, config.seed).numpy()
+    check_parameter_count(config.algorithm, start.size)  # before the scenes, which can take minutes
     scenes = prepare_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed)
     objective = PatternObjective(config.family, config.num_patterns, scenes, rig.rows, rig.cols, config.noise_scale,
                                  config.sharpness, config.pixels_per_scene, config.seed)
+    trace, partial = trace_path(out), partial_trace_path(out)
+    # A partial trace left by an earlier interrupted run would pass for this run's if this one is
+    # interrupted before its first flush.
+    _remove_file(partial)
     writer = summary_writer(logdir)
     bar = tqdm(total=config.maxeval, desc=f"search {config.family} M={config.num_patterns} {config.algorithm}", unit="eval", disable=not progress)
-    trace = trace_path(out)
     seen: list = []
 
     def on_evaluation(index, x, value, best):
@@ -489,7 +527,7 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
             writer.add_scalar("search/mae_deg", value, index)
             writer.add_scalar("search/best_mae_deg", best, index)
         if index % 10 == 9:
-            write_text(trace, trace_csv(names, seen))
+            write_text(partial, trace_csv(names, seen))
 
     try:
         found = minimise(objective, start, low, high, config.algorithm, config.maxeval, config.maxtime, config.xtol_rel,
@@ -498,7 +536,6 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
         bar.close()
         if writer is not None:
             writer.close()
-    write_text(trace, trace_csv(names, found.history))
     best_patterns = objective.patterns(found.best_x).numpy()
     resolved = config_to_dict(config)
     meta = {
@@ -526,8 +563,11 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
     }
     save_patterns(out, best_patterns, meta)
     write_json(config_record_path(out), resolved)
+    write_text(trace, trace_csv(names, found.history))
     chart = trace_chart_path(out)
     caption = (f"{meta['objective']}; {len(found.history)} evaluations, stop: {found.stop_reason}; "
                f"start {found.start_value:.2f} deg, best {found.best_value:.2f} deg")
     save_figure(trace_figure(found.history, f"NLopt {config.algorithm}: {config.family}, M = {config.num_patterns}", caption), chart)
+    # Last, so that a failure while writing the outputs above still leaves the flushed evaluations.
+    _remove_file(partial)
     return {**meta, "pattern_file": str(out), "trace_csv": str(trace), "trace_png": str(chart)}
