@@ -1,5 +1,7 @@
 """Pattern learning: reproducible, resumable, improves its loss, clear errors."""
+import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -120,6 +122,24 @@ def test_damaged_or_foreign_checkpoints_are_refused(tmp_path, scene_dirs):
     assert np.array_equal(replaced.patterns, afresh.patterns)
     with pytest.raises(InputError, match="checkpoint_mode"):
         train_patterns(config, tmp_path / "a.npz", progress=False, checkpoint_mode="maybe")
+
+
+def test_checkpoint_resumes_with_scenes_named_relative_or_absolute(tmp_path, scene_dirs, monkeypatch):
+    monkeypatch.chdir(scene_dirs[0].parent)
+    absolute = _config(scene_dirs, steps=2, val_every=0)
+    relative = _config(scene_dirs, steps=2, val_every=0, scenes=("train",), val_scenes=("./val",))
+    train_patterns(absolute, tmp_path / "a.npz", progress=False)
+    calls = []
+    monkeypatch.setattr(learn, "training_loss", lambda *args: calls.append(args) or torch.zeros(()))
+    resumed = train_patterns(relative, tmp_path / "a.npz", progress=False)  # finished: nothing left to run
+    assert not calls and resumed.patterns.shape == (3, 9, 16, 3)
+    assert json.loads((tmp_path / "a.config.json").read_text())["scenes"] == ["train"]  # the record keeps names as given
+    # The same relative name from another folder means other files: refused, not resumed.
+    monkeypatch.chdir(tmp_path)
+    for folder in scene_dirs:
+        shutil.copytree(folder, tmp_path / folder.name)
+    with pytest.raises(InputError, match=r"another config \(scenes, val_scenes differ\)"):
+        train_patterns(relative, tmp_path / "a.npz", progress=False)
 
 
 def test_bad_config_raises(tmp_path, scene_dirs):

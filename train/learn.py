@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import tempfile
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -285,11 +286,30 @@ def output_files(out: Path) -> list[tuple[str, Path]]:
 CHECKPOINT_KEYS = ("config", "logits", "optimiser", "scheduler", "step", "val_history")
 
 
+def checkpoint_identity(config: TrainConfig) -> dict:
+    """The config as a checkpoint records and compares it: ``config_to_dict`` with the scene,
+    pattern and rig files as absolute paths, so that a run resumes whether its files are named
+    relative to the working directory or absolutely, and a relative name that means other files
+    from another directory does not resume. (The config record beside the patterns keeps the
+    names as given.)"""
+    def absolute(name: str) -> str:
+        return str(Path(name).resolve())
+
+    return config_to_dict(dataclasses.replace(
+        config,
+        scenes=tuple(absolute(name) for name in config.scenes),
+        val_scenes=tuple(absolute(name) for name in config.val_scenes),
+        init=absolute(config.init) if names_pattern_file(config.init) else config.init,
+        rig=absolute(config.rig) if Path(config.rig).suffix == ".toml" else config.rig,
+    ))
+
+
 _AFRESH = "pass --fresh (or delete it) to start afresh"
 
 
 def load_checkpoint(checkpoint: Path, resolved: dict) -> dict:
-    """The training state saved in ``checkpoint`` by a run with the config ``resolved``.
+    """The training state saved in ``checkpoint`` by a run with the config ``resolved``
+    (``checkpoint_identity`` of the run's config).
 
     Loaded with ``weights_only`` (tensors and plain containers; a checkpoint never runs code).
 
@@ -334,13 +354,13 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
     logits = patterns_to_logits(initial_patterns(config, rig.rows, rig.cols)).detach().requires_grad_()
     optimiser = torch.optim.Adam([logits], lr=config.learning_rate)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimiser, cosine_schedule(config))
-    resolved = config_to_dict(config)
+    resolved, identity = config_to_dict(config), checkpoint_identity(config)
     start_step, val_history, loss_value = 0, [], float("nan")
     checkpoint = checkpoint_path(out)
     state = None
     if checkpoint.exists() and checkpoint_mode != "fresh":
         try:
-            state = load_checkpoint(checkpoint, resolved)
+            state = load_checkpoint(checkpoint, identity)
         except InputError:
             if checkpoint_mode == "resume":
                 raise
@@ -377,7 +397,7 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
             val_history.append((done, _validate(logits, val_scenes, eval_settings, writer, done)))
         bar.set_postfix(loss=f"{loss_value:.4f}", **({"val_mae": f"{val_history[-1][1]:.2f}"} if val_history else {}))
         if done % config.checkpoint_every == 0 or done == config.steps:
-            state = {"config": resolved, "logits": logits.detach().clone(), "optimiser": optimiser.state_dict(), "scheduler": scheduler.state_dict(), "step": done, "val_history": val_history, "loss": loss_value}
+            state = {"config": identity, "logits": logits.detach().clone(), "optimiser": optimiser.state_dict(), "scheduler": scheduler.state_dict(), "step": done, "val_history": val_history, "loss": loss_value}
             with atomic_path(checkpoint, suffix=".pt", sync=True) as tmp:
                 torch.save(state, tmp)
     if val_scenes and not val_history:  # no step ran (steps = 0): validate the start patterns
