@@ -67,6 +67,21 @@ def check_seed(name: str, seed) -> int:
     return int(seed)
 
 
+MAX_THREADS = 1024
+"""Largest torch thread count accepted (torch crashes on absurd thread counts instead of refusing them)."""
+
+
+def check_thread_count(count) -> int:
+    """``count`` as an int if it is 0 (torch's default) or 1..MAX_THREADS, else ``InputError``.
+
+    The one range check of every thread setting: ``displex --threads`` (also accepted after
+    ``invrender``; the CLI's argparse type calls it) and ``InvRenderConfig.threads`` from Python.
+    """
+    if not is_whole_number(count, 0, MAX_THREADS):
+        raise InputError(f"thread count must be 0 (torch's default) or 1..{MAX_THREADS}, got {count!r}")
+    return int(count)
+
+
 def check_array(
     name: str,
     value,

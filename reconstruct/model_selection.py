@@ -35,6 +35,10 @@ from reconstruct.inverse_render import FitConfig, FitProblem, InitialEstimate, r
 from reconstruct.relight import pooled_psnr
 
 
+LOBE_CHOICES = (False, True)
+"""The ``specular`` values tried for every J, smaller model first: Lambertian, then GGX lobes."""
+
+
 @dataclass(frozen=True)
 class SelectionConfig:
     """Settings of the model sweep (``select_model``) and of the light-model test."""
@@ -60,6 +64,12 @@ class SelectionConfig:
             raise InputError("SelectionConfig: max_basis, patience, iterations and batch_pixels must be >= 1")
         if self.tolerance_db < 0 or self.min_improvement_db < 0 or self.far_field_tolerance < 0:
             raise InputError("SelectionConfig: tolerances must be non-negative")
+
+    @property
+    def max_candidates(self) -> int:
+        """Candidate fits of a sweep that does not stop early: a Lambertian and a specular one per J
+        (``select_model``); the total of a progress display."""
+        return len(LOBE_CHOICES) * self.max_basis
 
 
 @dataclass(frozen=True)
@@ -139,7 +149,7 @@ def select_model(evaluate: Callable[[int, bool], Candidate], config: SelectionCo
     best_psnr, stale, stopped_early = -math.inf, 0, False
     for num_basis in range(1, config.max_basis + 1):
         scores = []
-        for specular in (False, True):
+        for specular in LOBE_CHOICES:
             candidate = evaluate(num_basis, specular)
             curve.append(candidate)
             scores.append(candidate.psnr)

@@ -4,6 +4,7 @@ import json
 import numpy as np
 import pytest
 
+from capture_sim.errors import MAX_THREADS
 from capture_sim.rig import load_rig
 from capture_sim.scene import save_scene
 from capture_sim.synth import synthesize_scene
@@ -281,6 +282,22 @@ def test_ctrl_c_gives_one_line_with_the_resume_hint(tmp_path, scene_file, capsys
     assert err.startswith("displex: interrupted; rerun the same command") and err.endswith("k.ckpt.pt") and "\n" not in err, err
 
 
+def test_ctrl_c_in_search_points_to_the_partial_trace(tmp_path, scene_file, capsys, monkeypatch):
+    out = tmp_path / "s.npz"
+
+    def interrupted(config, path, **kwargs):
+        if flushed:
+            (tmp_path / "s.trace.partial.csv").write_text("index,mae\n")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("train.search.run_search", interrupted)
+    command = ["search", "--family", "tri_complementary", "--M", "2", "--maxeval", "20", "--scenes", str(scene_file), "--out", str(out)]
+    for flushed, hint in ((False, "no evaluation was saved yet"), (True, f"are in {tmp_path / 's.trace.partial.csv'}")):
+        assert run(command) == 130
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("displex: interrupted; ") and err.endswith(hint) and "\n" not in err, err
+
+
 def test_patterns_make_and_export_round_trip(tmp_path):
     patterns = tmp_path / "p.npz"
     assert run(["patterns", "make", "--family", "tri_complementary", "--M", "2", "--out", str(patterns)]) == 0
@@ -489,3 +506,94 @@ def test_unknown_config_keys_are_not_blamed_on_flags(tmp_path, scene_file, capsy
     assert run(["search", "--config", "configs/train/default.toml", "--scenes", str(scene_file), "--out", str(tmp_path / "s.npz")]) == 2
     err = capsys.readouterr().err
     assert "unknown key(s)" in err and "set by" not in err, err
+
+
+def test_invrender_threads_is_the_global_threads_option(tmp_path, scene_file, monkeypatch, capsys):
+    """`invrender --threads T` (kept for older command lines) and `displex --threads T invrender`: one
+    option, one range check, one error line, and the config records the count."""
+    import torch
+
+    import train.invrender_command as command
+
+    seen = []
+
+    def fake_run(config):
+        seen.append((config.threads, torch.get_num_threads()))
+        return {}
+
+    monkeypatch.setattr(command, "run_invrender", fake_run)
+    before = torch.get_num_threads()
+    base = ["invrender", "--scene", str(scene_file)]
+    for argv in (["--threads", "1", *base], [*base, "--threads", "1"], ["--threads", "2", *base, "--threads", "1"]):
+        assert run(argv) == 0, argv
+        assert seen.pop() == (1, 1), argv
+        assert torch.get_num_threads() == before
+    assert run(base) == 0 and seen.pop() == (0, before)
+    for argv in ([*base, "--threads", "-1"], ["--threads", "-1", *base], [*base, "--threads", str(MAX_THREADS + 1)]):
+        capsys.readouterr()
+        assert run(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("displex: error:") and "thread count must be 0 (torch's default) or 1..1024" in err and "\n" not in err, err
+    assert not seen
+
+
+def test_scenes_synth_cast_shadows_traces_shadows_that_darken_scenes_and_captures(tmp_path, capsys, monkeypatch):
+    """``--cast-shadows`` (only ``scenes synth`` has it) reaches the shadow tracer of
+    ``capture_sim.synth``: without it no shadow ray is traced and the OLAT stacks hold attached
+    shadows only; with it the concave scenes get darker (never brighter), convex ones are unchanged,
+    the geometry is the same, the flag is recorded, and simulated captures are darker too."""
+    import capture_sim.synth as synth
+    from capture_sim.scene import load_scene
+    from capture_sim.shapes import make_shape
+
+    traced = []
+    trace = synth.shadow_visibility
+    monkeypatch.setattr(synth, "shadow_visibility", lambda *args: traced.append(args[0].name) or trace(*args))
+    indexes, traced_shapes = {}, {}
+    for name, flags in (("lit", []), ("shadowed", ["--cast-shadows"])):
+        traced.clear()
+        assert run(["scenes", "synth", "--out", str(tmp_path / name), "--size", "8x10", *flags]) == 0
+        indexes[name] = json.loads((tmp_path / name / "index.json").read_text())
+        traced_shapes[name] = set(traced)
+    entries = [entry for split in indexes["lit"]["splits"].values() for entry in split]
+    assert traced_shapes == {"lit": set(), "shadowed": {entry["shape"] for entry in entries}}
+    assert (indexes["lit"]["cast_shadows"], indexes["shadowed"]["cast_shadows"]) == (False, True)
+
+    darkened = {}
+    for entry in entries:
+        lit, shadowed = (load_scene(tmp_path / name / entry["file"]) for name in ("lit", "shadowed"))
+        assert (lit.meta["cast_shadows"], shadowed.meta["cast_shadows"]) == (False, True)
+        for key in ("mask", "normal", "depth"):
+            assert np.array_equal(getattr(lit, key), getattr(shadowed, key)), (entry["name"], key)
+        for key in ("olat", "diffuse", "specular"):
+            assert bool((getattr(shadowed, key) <= getattr(lit, key)).all()), (entry["name"], key)
+        if make_shape(entry["shape"]).convex:
+            assert np.array_equal(lit.olat, shadowed.olat), entry["name"]
+        darkened[entry["shape"]] = int((shadowed.olat < 0.5 * lit.olat)[..., 0].sum())
+    assert darkened["torus"] > 50 and darkened["bowl"] > 50, darkened
+
+    # The shadows reach the captures: same patterns, fixed exposure, no noise, nothing saturated.
+    bowl = next(entry["file"] for entry in entries if entry["shape"] == "bowl")
+    pattern_path, _ = _pattern_file(tmp_path, "random", load_rig())
+    captures = {}
+    for name in ("lit", "shadowed"):
+        out = tmp_path / f"captures-{name}"
+        assert run(["simulate", "--scene", str(tmp_path / name / bowl), "--patterns", str(pattern_path), "--out", str(out),
+                    "--noise", "off", "--exposure", "0.01"]) == 0
+        captures[name] = np.load(out / "captures.npy")
+    assert captures["lit"].max() < 1.0
+    assert bool((captures["shadowed"] <= captures["lit"]).all())
+    assert int((captures["shadowed"] < captures["lit"]).sum()) > 50  # of 3 patterns x 21 masked pixels x 3 channels
+
+    # The flag is a switch of scenes synth alone: a value or another command is refused in one line.
+    for argv, message in (
+        (["scenes", "synth", "--out", str(tmp_path / "a"), "--cast-shadows=yes"], "argument --cast-shadows: ignored explicit argument 'yes'"),
+        (["simulate", "--scene", str(tmp_path / "lit" / bowl), "--patterns", str(pattern_path), "--out", str(tmp_path / "b"), "--cast-shadows"],
+         "unrecognized arguments: --cast-shadows"),
+        (["evaluate", "--patterns", "olat", "--scenes", str(tmp_path / "lit" / "test"), "--cast-shadows"], "unrecognized arguments: --cast-shadows"),
+    ):
+        capsys.readouterr()
+        assert run(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("displex: error:") and message in err and err.count("\n") == 1, (argv, err)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

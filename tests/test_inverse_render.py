@@ -665,6 +665,19 @@ def test_run_invrender_bad_settings_raise(scene_file, bad):
         run_invrender(InvRenderConfig(scene=scene_file, **bad))
 
 
+def test_invrender_thread_settings_from_python_use_the_cli_check(scene_file):
+    """InvRenderConfig and bench_invrender refuse what `displex --threads` refuses, with its message."""
+    from capture_sim.errors import MAX_THREADS, check_thread_count
+    from train.invrender_command import InvRenderConfig, bench_invrender
+
+    assert check_thread_count(0) == 0 and check_thread_count(MAX_THREADS) == MAX_THREADS
+    for bad in (-1, MAX_THREADS + 1, 2.0, True):
+        with pytest.raises(InputError, match=r"thread count must be 0 \(torch's default\) or 1\.\.1024"):
+            InvRenderConfig(scene=scene_file, threads=bad).validate()
+    with pytest.raises(InputError, match="thread count"):
+        bench_invrender(threads=-1)
+
+
 def test_run_invrender_without_ground_truth_normals(tmp_path, small_scene):
     import dataclasses
 

@@ -154,6 +154,45 @@ def test_run_invrender_auto_basis_writes_the_curve(tmp_path):
     assert (out / "model_selection.png").is_file()
 
 
+def test_max_candidates_is_the_length_of_a_full_sweep():
+    table = {(j, s): 20.0 + 2.0 * j for j in range(1, 5) for s in (False, True)}
+    evaluate, calls = _scripted(table)
+    config = SelectionConfig(max_basis=4)
+    select_model(evaluate, config)
+    assert config.max_candidates == len(calls) == 8
+
+
+def test_invrender_progress_bar_counts_candidate_fits(tmp_path, monkeypatch, capsys):
+    """One bar step per candidate fit: total ``max_candidates``, ending full when the sweep stops
+    early; ``progress=False`` prints nothing."""
+    import train.invrender_command as command
+    from train.invrender_command import InvRenderConfig, run_invrender
+
+    save_scene(synthesize_scene("sphere", "lambertian", load_rig(), 24, 29, seed=1), tmp_path / "sphere.npz")
+    # No J can gain 100 dB: the sweep stops after J = 2 of 3, four fits of six.
+    selection = SelectionConfig(iterations=2, max_basis=3, patience=1, min_improvement_db=100.0)
+    config = InvRenderConfig(scene=tmp_path / "sphere.npz", iterations=2, noise="off", geometry="near", selection=selection)
+    real_tqdm, bars = command.tqdm, []
+
+    def recording_tqdm(*args, **kwargs):
+        bars.append((kwargs["total"], real_tqdm(*args, **kwargs)))
+        return bars[-1][1]
+
+    monkeypatch.setattr(command, "tqdm", recording_tqdm)
+    capsys.readouterr()
+    result = run_invrender(config)
+    fits = len(result["model_selection"]["curve"])
+    assert result["model_selection"]["stopped_early"] and fits == 4
+    [(initial_total, bar)] = bars
+    assert initial_total == selection.max_candidates == 6 and bar.n == bar.total == fits
+    err = capsys.readouterr().err
+    assert "model selection" in err and f"{fits}/{fits}" in err
+
+    bars.clear()
+    run_invrender(config, progress=False)
+    assert len(bars) == 1 and capsys.readouterr().err == ""
+
+
 def _olat_selection(scene: Scene, rig, iterations: int, seed: int = 0):
     """select_basis as the command runs it in OLAT mode: train lights fit, validation lights score."""
     pixels = scene_pixels(scene, rig)

@@ -12,7 +12,7 @@ import warnings
 from pathlib import Path
 
 from capture_sim.atomic import check_output_folder, refuse_overwriting
-from capture_sim.errors import DisplexWarning, InputError
+from capture_sim.errors import DisplexWarning, InputError, check_thread_count
 from capture_sim.rig import DEFAULT_RIG
 
 NOISE_CHOICES = ("off", "default")
@@ -65,15 +65,16 @@ RERUN_REUSES_RUNS = "rerun the same command to reuse its finished learning and s
 
 
 def _thread_count(text: str) -> int:
-    from train.invrender_command import MAX_THREADS
-
+    """``--threads T``, global or after ``invrender``; the range is ``check_thread_count``'s, which
+    also checks ``InvRenderConfig.threads`` from Python."""
     try:
         count = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"invalid thread count {text!r}") from None
-    if not 0 <= count <= MAX_THREADS:
-        raise argparse.ArgumentTypeError(f"thread count must be 0 (torch's default) or 1..{MAX_THREADS}, got {count}")
-    return count
+    try:
+        return check_thread_count(count)
+    except InputError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def _installed_version() -> str:
@@ -167,8 +168,9 @@ def build_parser() -> argparse.ArgumentParser:
     search.add_argument("--seed", type=int, default=None, help="seed of NLopt's random choices, the pixel subsets and the noise (default: the config's, 0)")
     search.add_argument("--scenes", type=_path, nargs="+", default=None, help="scenes to optimise on (default: synthetic train split)")
     search.add_argument("--logdir", type=_path, default=None, help="TensorBoard folder: MAE and best-so-far per evaluation")
-    search.add_argument("--out", type=_pattern_output, required=True, help="best pattern file; the trace goes to <stem>.trace.csv and .trace.png")
-    search.set_defaults(handler=_search)
+    search.add_argument("--out", type=_pattern_output, required=True,
+                        help="best pattern file; the trace goes to <stem>.trace.csv and .trace.png (<stem>.trace.partial.csv while it runs)")
+    search.set_defaults(handler=_search, interrupted=_search_interrupted)
 
     compare = commands.add_parser("compare", help="compare learned, searched, heuristic and external patterns on held-out scenes")
     compare.add_argument("--config", type=_path, required=True, help="TOML in configs/compare/ (or a preset name: default, demo)")
@@ -197,7 +199,10 @@ def build_parser() -> argparse.ArgumentParser:
     invrender.add_argument("--exposure", default="rig", help=EXPOSURE_HELP + " (pattern captures; OLAT captures use auto)")
     invrender.add_argument("--seed", type=int, default=0)
     invrender.add_argument("--rig", default=DEFAULT_RIG)
-    invrender.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default, one per core; 1 is faster on a busy machine)")
+    # The global --threads, also accepted here (older command lines). SUPPRESS: without this flag a
+    # global value stands (a subcommand default would overwrite it).
+    invrender.add_argument("--threads", type=_thread_count, default=argparse.SUPPRESS, dest="torch_threads", metavar="T",
+                           help="same as `displex --threads T invrender ...`")
     invrender.add_argument("--json", type=_path, default=None)
     invrender.add_argument("--out", type=_path, default=None)
     invrender.set_defaults(handler=_invrender)
@@ -279,6 +284,15 @@ def _train_interrupted(args) -> str:
     return f"rerun the same command to resume from its last checkpoint, {checkpoint}"
 
 
+def _search_interrupted(args) -> str:
+    from train.search import partial_trace_path
+
+    partial = partial_trace_path(args.out)
+    if not partial.exists():
+        return "no evaluation was saved yet"
+    return f"the evaluations saved so far (every 10th flushes them) are in {partial}"
+
+
 def _search(args) -> None:
     from train.config_io import load_config
     from train.search import SearchConfig, output_files, run_search
@@ -341,7 +355,7 @@ def _invrender(args) -> None:
     outputs = [("--json", args.json), *((f"--out file {name}", None if args.out is None else args.out / name) for name in OUTPUT_FILES)]
     refuse_overwriting(outputs, [("--scene", args.scene), ("--patterns file", None if args.patterns == "olat" else args.patterns)])
     changes = dict(scene=args.scene, patterns=args.patterns, basis=args.basis, noise=args.noise, seed=args.seed, rig=args.rig, json=args.json, out=args.out,
-                   threads=args.threads, exposure=args.exposure)
+                   threads=args.torch_threads, exposure=args.exposure)  # already applied by _run; recorded in config.json
     if args.iterations is not None:
         changes["iterations"] = args.iterations
     document = run_invrender(InvRenderConfig(**changes))
