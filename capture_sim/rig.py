@@ -35,11 +35,14 @@ class Camera:
         K_cam: (3, 3) intrinsics in pixels for an image of ``height`` x ``width``.
         height: image rows in pixels.
         width: image columns in pixels.
+        exposure_ms: capture time per image in milliseconds (the rig TOML's
+            ``camera.exposure_ms``), or None where the rig does not give it.
     """
 
     K_cam: tuple[tuple[float, float, float], ...]
     height: int
     width: int
+    exposure_ms: float | None = None
 
     def __post_init__(self):
         if not (is_whole_number(self.height, 1, MAX_IMAGE_SIDE) and is_whole_number(self.width, 1, MAX_IMAGE_SIDE)):
@@ -60,7 +63,7 @@ class Camera:
         k = self.matrix()
         k[0, :] *= sx
         k[1, :] *= sy
-        return Camera(K_cam=_as_nested(k), height=height, width=width)
+        return Camera(K_cam=_as_nested(k), height=height, width=width, exposure_ms=self.exposure_ms)
 
 
 @dataclass(frozen=True)
@@ -265,6 +268,7 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
             K_cam=_as_nested(np.array([[cam["fx"], 0.0, cam["cx"]], [0.0, cam["fy"], cam["cy"]], [0.0, 0.0, 1.0]])),
             height=_whole_number("camera height", cam["height"]),
             width=_whole_number("camera width", cam["width"]),
+            exposure_ms=camera_exposure_ms(cam["exposure_ms"]) if "exposure_ms" in cam else None,
         )
         display = config["display"]
         if "light_positions" in display:
@@ -273,8 +277,6 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
             positions = panel_positions(**display["panel"])
         exposure = config.get("exposure", "auto")
         bit_depth = config.get("bit_depth", 12)
-        if "exposure_ms" in cam:
-            camera_exposure_ms(cam["exposure_ms"])
         return Rig(
             name=config.get("name", default_name),
             light_positions=positions,

@@ -220,10 +220,16 @@ def rig_for_scene(rig: Rig, scene: Scene) -> Rig:
     rows, cols = scene.light_positions.shape[:2]
     if (rows, cols) != (rig.rows, rig.cols):
         raise InputError(f"scene {scene.name} has a {rows} x {cols} light grid but rig {rig.name} is {rig.rows} x {rig.cols}")
-    camera = Camera(K_cam=tuple(tuple(float(v) for v in row) for row in scene.K_cam), height=scene.height, width=scene.width)
-    shift = float(np.linalg.norm(scene.light_positions.astype(np.float64) - rig.light_positions, axis=-1).max())
+    camera = Camera(K_cam=tuple(tuple(float(v) for v in row) for row in scene.K_cam), height=scene.height, width=scene.width,
+                    exposure_ms=rig.camera.exposure_ms)
+    lights = scene.light_positions.astype(np.float64)
+    # A distant display is a valid scene (far-field tests), so the unit cannot be told from the
+    # distances alone; the rig's own grid in millimetres (raw DIR calibration) can.
+    if float(np.linalg.norm(lights / 1000.0 - rig.light_positions, axis=-1).max()) <= LIGHT_MISMATCH_M:
+        raise InputError(f"scene {scene.name}: its light positions are rig {rig.name}'s in millimetres; scene files use metres (divide by 1000)")
+    shift = float(np.linalg.norm(lights - rig.light_positions, axis=-1).max())
     if shift > LIGHT_MISMATCH_M:
         warnings.warn(f"scene {scene.name}: its light positions differ from rig {rig.name}'s by up to {shift:.3f} m; "
                       "the scene's own calibration is used", DisplexWarning, stacklevel=2)
-    return rig.replace(light_positions=scene.light_positions.astype(np.float64), camera=camera)
+    return rig.replace(light_positions=lights, camera=camera)
 

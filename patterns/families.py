@@ -46,7 +46,9 @@ DEFAULT_SHARPNESS = 40.0
 
 PRESETS = ("default", "ddps")
 
-_LEVELS = {"default": (0.0, 1.0), "ddps": (0.1, 0.9)}
+PRESET_LEVELS = {"default": (0.0, 1.0), "ddps": (0.1, 0.9)}
+"""(off, on) set levels of each preset (families that need other levels override them)."""
+
 _RADIAL_EPS = 1e-3  # cells; changes a published value by < 1e-7
 _GRAY_NOISE_MEAN = 0.5
 _GRAY_NOISE_STD = 0.01  # the published grey noise: 0.5 + 0.01 * N(0, 1)
@@ -226,7 +228,7 @@ def _levels(values: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
 
 
 def _level_parameters(preset: str, levels: dict | None = None) -> list[Parameter]:
-    lo, hi = (levels or _LEVELS)[preset]
+    lo, hi = (levels or PRESET_LEVELS)[preset]
     return [
         Parameter("lo", 0.0, 0.5, lo),
         Parameter("hi", 0.5, 1.0, hi),

@@ -11,6 +11,7 @@ from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import load_rig
 from capture_sim.synth import write_scene_set
 from train.compare import (
+    DEFAULT_EXPOSURE_MS,
     CompareConfig,
     Method,
     collect_methods,
@@ -109,8 +110,12 @@ def test_published_initial_patterns_are_recognised_as_families():
 
 
 def test_rig_exposure_time():
-    assert rig_exposure_ms("dir-odyssey-ark")[0] == 440.0
-    assert rig_exposure_ms("panel-32in-5x10")[0] > 0
+    assert rig_exposure_ms(load_rig("dir-odyssey-ark"))[0] == 440.0
+    assert rig_exposure_ms(load_rig("panel-32in-5x10"))[0] > 0
+    assert rig_exposure_ms(load_rig("dir-odyssey-ark").with_resolution(10, 12))[0] == 440.0  # kept when resized
+    untimed = dataclasses.replace(load_rig(), camera=dataclasses.replace(load_rig().camera, exposure_ms=None))
+    exposure_ms, source = rig_exposure_ms(untimed)
+    assert exposure_ms == DEFAULT_EXPOSURE_MS and source.startswith("default")
 
 
 def test_unsupported_and_mismatched_methods_are_skipped_with_a_reason(scenes, tmp_path):
@@ -233,7 +238,8 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
 
     report = (tmp_path / "report.md").read_text()
     assert results["summary"]["rerender"][0]["M"] == 2
-    for text in ("method x M", "MAE against noise level", "How the advantage", "Capture time", "Compute time", "OLAT + Woodham", "normal + re-rendering"):
+    for text in ("method x M", "MAE against noise level", "How the advantage", "Capture time", "Compute time", "OLAT + Woodham", "normal + re-rendering",
+                 "Heuristic families use preset default: off level 0, on level 1"):
         assert text in report
     for file_name in CHARTS.values():
         assert (tmp_path / file_name).stat().st_size > 0 and f"({file_name})" in report
@@ -260,6 +266,19 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     assert next(m for m in again["methods"] if m["kind"] == "learned")["cost_seconds"] == pytest.approx(learned["cost_seconds"])
     with pytest.raises(InputError, match="another config"):
         run_compare(tiny_config(scenes, learned={"steps": 3, "val_every": 0, "pixels_per_scene": 64}), tmp_path, progress=False)
+
+
+def test_demo_reuses_only_a_scene_set_of_its_own_settings(tmp_path):
+    from capture_sim.synth import write_scene_set
+    from train.compare import _scene_set_matches
+
+    config = dataclasses.replace(load_compare_config("demo"), scene_size=[8, 10])
+    rig = load_rig(config.rig)
+    write_scene_set(tmp_path / "plain", rig, 8, 10, config.scene_seed, progress=False)
+    write_scene_set(tmp_path / "shadows", rig, 8, 10, config.scene_seed, cast_shadows=True, progress=False)
+    assert _scene_set_matches(tmp_path / "plain" / "index.json", rig, config)
+    assert not _scene_set_matches(tmp_path / "shadows" / "index.json", rig, config)
+    assert not _scene_set_matches(tmp_path / "plain" / "index.json", rig, dataclasses.replace(config, scene_seed=config.scene_seed + 1))
 
 
 def test_demo_runs_on_a_tiny_config(tmp_path, capsys):

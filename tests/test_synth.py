@@ -360,6 +360,11 @@ def test_interrupted_scene_set_leaves_no_index(rig, tmp_path, monkeypatch):
         write_scene_set(out, rig, height=12, width=14, seed=1, progress=False)
     assert len(calls) == 1 and not (out / "index.json").exists()
     assert not calls[0].exists()  # the interrupted run's scenes are removed, not left as a partial split
+    assert (out / "train").is_dir()  # folders that were there before stay
+    calls.clear()
+    with pytest.raises(KeyboardInterrupt):
+        write_scene_set(tmp_path / "fresh", rig, height=12, width=14, seed=1, progress=False)
+    assert not (tmp_path / "fresh").exists()  # the folders the failed run made are removed with its scenes
 
 
 def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tmp_path):
@@ -379,6 +384,10 @@ def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tm
         validate_scene(dataclasses.replace(scene, K_cam=np.zeros((3, 3))))
     with pytest.raises(InputError, match="depth must be in metres, but its median inside the mask is 4.*millimetres"):
         validate_scene(dataclasses.replace(scene, depth=scene.depth * 1000))
+    from capture_sim.scene import rig_for_scene
+
+    with pytest.raises(InputError, match="its light positions are rig .*'s in millimetres; scene files use metres"):
+        rig_for_scene(load_rig(), dataclasses.replace(scene, light_positions=scene.light_positions * 1000))
     negative = scene.diffuse.copy()
     negative[0, 0, 0, 0] = -0.01  # a noisy polarisation split
     with pytest.raises(InputError, match="diffuse has negative radiance"):

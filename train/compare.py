@@ -31,7 +31,7 @@ from tqdm import tqdm
 
 from capture_sim.atomic import write_json
 from capture_sim.errors import DisplexWarning, InputError, check_seed
-from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, RIG_DIR, camera_exposure_ms, load_rig
+from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, Rig, load_rig
 from capture_sim.toml_io import load_toml
 from patterns.families import FAMILIES, PRESETS, get_family, make_patterns
 from patterns.io import load_patterns, save_patterns
@@ -39,7 +39,7 @@ from train.config_io import config_from_dict, config_to_dict, json_value
 from train.evaluate import EvalSettings, evaluate_scene
 from reconstruct.photometric_stereo import PSConfig
 from train.learn import TrainConfig, names_pattern_file, train_patterns
-from train.search import SearchConfig, run_search
+from train.search import SearchConfig, run_search, trace_chart_path
 from train.scene_pixels import fixed_pixel_subsets, scene_pixels
 from train.scene_sets import resolve_scenes
 
@@ -368,16 +368,10 @@ def compare_config_to_dict(config: CompareConfig) -> dict:
     return out
 
 
-def rig_exposure_ms(rig_name: str) -> tuple[float, str]:
-    """Exposure time per image (ms) from the rig TOML's ``camera.exposure_ms``, and where it came from."""
-    path = Path(rig_name) if str(rig_name).endswith(".toml") else RIG_DIR / f"{rig_name}.toml"
-    camera = load_toml(path).get("camera", {}) if path.is_file() else {}
-    if "exposure_ms" in camera:
-        try:
-            exposure_ms = camera_exposure_ms(camera["exposure_ms"])
-        except InputError as err:
-            raise InputError(f"rig {rig_name}: {err}") from None
-        return exposure_ms, f"rig {rig_name}: camera.exposure_ms"
+def rig_exposure_ms(rig: Rig) -> tuple[float, str]:
+    """Exposure time per image (ms) from the rig's ``camera.exposure_ms``, and where it came from."""
+    if rig.camera.exposure_ms is not None:
+        return rig.camera.exposure_ms, f"rig {rig.name}: camera.exposure_ms"
     return DEFAULT_EXPOSURE_MS, "default (the reference camera's 440 ms; the rig gives no camera.exposure_ms)"
 
 
@@ -472,7 +466,7 @@ def searched_method(config: CompareConfig, run: SearchRun, pattern_dir: Path, pr
     else:
         meta, patterns = existing["meta"], existing["patterns"]
     info = {key: meta[key] for key in ("start_mae", "best_mae", "evaluations", "stop_reason", "sharpness")}
-    info["trace_png"] = str(path.with_name(path.stem + ".trace.png"))
+    info["trace_png"] = str(trace_chart_path(path))
     return Method(run.name, "search", f"search:{run.family}:{run.algorithm}", f"{run.family} + {run.algorithm}", run.num_patterns,
                   patterns, str(path), meta["seconds"], info=info)
 
@@ -733,7 +727,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     out_dir = Path(out_dir)
     began = time.perf_counter()
     rig = load_rig(config.rig)
-    exposure_ms, exposure_source = rig_exposure_ms(config.rig)
+    exposure_ms, exposure_source = rig_exposure_ms(rig)
     resolved = compare_config_to_dict(config)
     test_raw = resolve_scenes(tuple(config.test_scenes), "test", rig, tuple(config.scene_size), config.scene_seed)
     test_scenes = [scene_pixels(scene, rig, require_normals=True) for scene in test_raw]
@@ -782,15 +776,19 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
 
 
 def _scene_set_matches(index_path: Path, rig, config: CompareConfig) -> bool:
-    """Whether a synthesised scene set (its ``index.json``) was made with this rig, size and seed,
-    so that a rerun reuses it instead of silently mixing in scenes of other settings."""
+    """Whether a synthesised scene set (its ``index.json``) is the one ``run_demo`` would write:
+    this generator, rig, size and seed, without cast shadows. A rerun then reuses it instead of
+    silently using scenes of other settings (e.g. a ``scenes synth --cast-shadows`` set)."""
+    from capture_sim.synth import GENERATOR
+
     if not index_path.exists():
         return False
     try:
         index = json.loads(index_path.read_text())
     except (OSError, ValueError):
         return False
-    wanted = {"rig": rig.name, "height": config.scene_size[0], "width": config.scene_size[1], "seed": config.scene_seed}
+    wanted = {"generator": GENERATOR, "rig": rig.name, "height": config.scene_size[0], "width": config.scene_size[1],
+              "seed": config.scene_seed, "cast_shadows": False}
     return isinstance(index, dict) and all(index.get(key) == value for key, value in wanted.items())
 
 

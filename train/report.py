@@ -14,7 +14,7 @@ import matplotlib.ticker
 import numpy as np
 
 from capture_sim.atomic import write_text
-from patterns.families import FAMILIES
+from patterns.families import FAMILIES, PRESET_LEVELS
 from train.figures import plt, save_figure
 
 CHARTS = {
@@ -474,8 +474,15 @@ def _measurement_caption(results: dict) -> str:
         "weighs the same). Capture time = M x "
         f"{results['exposure_ms']:g} ms ({results['exposure_ms_source']}). Compute time = wall seconds per scene of simulation plus "
         "reconstruction on this machine's CPU. Exposure = mean auto-exposure gain. Cost = wall seconds spent learning "
-        f"(training scenes only) or searching. Learning and searches used noise scale {default:g}."
+        f"(training scenes only) or searching. Learning and searches used noise scale {default:g}. {_preset_text(results)}"
     )
+
+
+def _preset_text(results: dict) -> str:
+    preset = results["config"].get("heuristic_preset", "default")
+    off, on = PRESET_LEVELS[preset]
+    published = "the published levels" if preset == "ddps" else "the published definitions use 0.1 and 0.9 (preset ddps)"
+    return f"Heuristic families use preset {preset}: off level {off:g}, on level {on:g} where a family has both ({published})."
 
 
 def specular_free_section(results: dict, summary: dict, rows: list[dict]) -> list[str]:
