@@ -109,6 +109,18 @@ def test_published_initial_patterns_are_recognised_as_families():
         assert first_with_same_patterns(methods) == [0, 0, 2, 3, 3]
 
 
+def test_capture_time_is_M_exposures_scaled_by_the_gain_over_all_white():
+    from train.compare import SUMMARY_METRICS, summarise
+
+    scenes = [{**{key: 1.0 for key in SUMMARY_METRICS}, "name": name, "exposure": gain} for name, gain in (("a", 0.02), ("b", 0.3))]
+    summary = summarise(scenes, 4, 440.0, [0.01, 0.1])
+    # 4 images x 0.44 s x (2 and 3 times the all-white gain), averaged over the two scenes.
+    assert summary["capture_seconds"] == pytest.approx(4 * 0.44 * (2 + 3) / 2)
+    assert [scene["capture_seconds"] for scene in summary["scenes"]] == pytest.approx([4 * 0.44 * 2, 4 * 0.44 * 3])
+    with pytest.raises(ValueError):
+        summarise(scenes, 4, 440.0, [0.01])  # one white gain per scene
+
+
 def test_rig_exposure_time():
     assert rig_exposure_ms(load_rig("dir-odyssey-ark"))[0] == 440.0
     assert rig_exposure_ms(load_rig("panel-32in-5x10"))[0] > 0
@@ -230,7 +242,11 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
         assert len(evaluation["scenes"]) == 4
         for key in ("mae", "median", "under_5", "under_30", "invalid_fraction", "exposure", "capture_seconds", "compute_seconds"):
             assert np.isfinite(evaluation[key])
-        assert evaluation["capture_seconds"] == pytest.approx(method["M"] * 0.44)
+        # Exposure time scales with the gain relative to the all-white display, which no pattern outshines.
+        whites = [results["white_exposures"][scene["name"]] for scene in evaluation["scenes"]]
+        assert evaluation["capture_seconds"] == pytest.approx(np.mean([method["M"] * 0.44 * scene["exposure"] / white
+                                                                       for scene, white in zip(evaluation["scenes"], whites)]))
+        assert all(scene["exposure"] >= white * (1 - 1e-6) for scene, white in zip(evaluation["scenes"], whites))
     learned = next(m for m in results["methods"] if m["kind"] == "learned")
     assert learned["cost_seconds"] > 0 and (tmp_path / learned["pattern_file"]).is_file()
     assert results["skipped"] == [{"method": "ddps_learned_M4", "M": 4, "reason": "M is not in pattern_counts"}]
@@ -318,8 +334,9 @@ def test_parallel_subset_evaluation_matches_in_process_and_deduplicates(scenes, 
                 Method("olat_woodham", "reference", "olat_woodham", "OLAT", rig.num_lights, "olat")]
 
     serial, parallel = methods(), methods()
-    evaluate_methods(serial, test_scenes, config, 440.0, progress=False)
-    evaluate_methods(parallel, test_scenes, dataclasses.replace(config, eval_workers=2), 440.0, progress=False)
+    whites = [0.01] * len(test_scenes)
+    evaluate_methods(serial, test_scenes, config, 440.0, whites, progress=False)
+    evaluate_methods(parallel, test_scenes, dataclasses.replace(config, eval_workers=2), 440.0, whites, progress=False)
     assert serial[1].info["same_patterns_as"] == "a" and serial[1].evaluations[0]["mae"] == serial[0].evaluations[0]["mae"]
     for one, other in zip(serial, parallel):
         for first, second in zip(one.evaluations, other.evaluations):
@@ -344,8 +361,9 @@ def test_specular_free_evaluation_is_the_evaluation_of_the_diffuse_scenes(scenes
     config = tiny_config(scenes, eval_pixels_per_scene=40, solver={"max_shadow_iterations": 4})
     patterns = np.load(REPO / "patterns" / "data" / "ddps" / "initial_tri_complementary.npy").astype(np.float32)
     methods = [Method("a", "heuristic", "a", "a", 2, patterns)]
-    evaluate_methods(methods, prepare_scenes([scenes / "test"], "test", rig, SIZE, 0), config, 440.0, progress=False)
-    evaluate_specular_free(methods, free_scenes, config, 440.0, progress=False)
+    whites = [0.01] * len(free_scenes)
+    evaluate_methods(methods, prepare_scenes([scenes / "test"], "test", rig, SIZE, 0), config, 440.0, whites, progress=False)
+    evaluate_specular_free(methods, free_scenes, config, 440.0, whites, progress=False)
     # The main evaluation's pixels (its scenes' masks) and exposures, set here independently.
     main_scenes = prepare_scenes([scenes / "test"], "test", rig, SIZE, 0)
     columns = evaluation_columns(main_scenes, 40, config.eval_seed)

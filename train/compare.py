@@ -35,12 +35,13 @@ from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, Rig, load_rig
 from capture_sim.toml_io import load_toml
 from patterns.families import FAMILIES, PRESETS, get_family, make_patterns
 from patterns.io import load_patterns, save_patterns
+from train.capture import scene_exposure
 from train.config_io import config_from_dict, config_to_dict, json_value
 from train.evaluate import EvalSettings, evaluate_scene
 from reconstruct.photometric_stereo import PSConfig
 from train.learn import TrainConfig, names_pattern_file, train_patterns
 from train.search import SearchConfig, run_search, trace_chart_path
-from train.scene_pixels import fixed_pixel_subsets, scene_pixels
+from train.scene_pixels import ScenePixels, fixed_pixel_subsets, scene_pixels
 from train.scene_sets import resolve_scenes
 
 DEFAULT_EXPOSURE_MS = 440.0
@@ -539,24 +540,43 @@ def collect_methods(config: CompareConfig, rig, pattern_dir: Path, progress: boo
 # ---------------------------------------------------------------------------------------------
 
 
-def summarise(scene_metrics: list[dict], num_patterns: int, exposure_ms: float) -> dict:
+def summarise(scene_metrics: list[dict], num_patterns: int, exposure_ms: float, white_exposures: list[float]) -> dict:
     """Scene-averaged metrics of one method at one noise level, with capture and compute time.
 
+    Capture time follows DESIGN section 5, M x exposure time per image, with the exposure time
+    scaled by the exposure gain e the method needed: the sensor's noise is added after e in
+    full-scale units (section 3), so e acts as integration time, and a dim pattern set that auto
+    exposure lifts with a large e takes that much longer at the rig. The rig's exposure time is
+    taken as that of the all-white display, whose gain on the scene is ``white_exposures``:
+    t = exposure_ms x e / e_white per image.
+
     Args:
-        scene_metrics: ``evaluate_scene`` metrics per test scene.
+        scene_metrics: ``evaluate_scene`` metrics per test scene (with its ``exposure`` e).
         num_patterns: M (images captured).
-        exposure_ms: exposure time per image in milliseconds.
+        exposure_ms: exposure time per image of the all-white display, milliseconds.
+        white_exposures: e_white per test scene (``white_exposures``), in ``scene_metrics`` order.
 
     Returns:
         dict: every ``SUMMARY_METRICS`` entry averaged over scenes (``seconds`` renamed
         ``compute_seconds``: simulation plus reconstruction wall time per scene),
-        ``capture_seconds`` = M x exposure time, and the per-scene values under ``scenes``.
+        ``capture_seconds`` (the scene mean of M x exposure_ms x e / e_white, in seconds), and the
+        per-scene values under ``scenes``.
     """
     summary = {key: float(np.mean([metrics[key] for metrics in scene_metrics])) for key in SUMMARY_METRICS}
     summary["compute_seconds"] = summary.pop("seconds")
-    summary["capture_seconds"] = num_patterns * exposure_ms / 1000.0
-    summary["scenes"] = [{key: metrics[key] for key in ("name", "mae", "median", "invalid_fraction", "exposure", "seconds")} for metrics in scene_metrics]
+    captures = [num_patterns * exposure_ms / 1000.0 * metrics["exposure"] / white for metrics, white in zip(scene_metrics, white_exposures, strict=True)]
+    summary["capture_seconds"] = float(np.mean(captures))
+    summary["scenes"] = [{**{key: metrics[key] for key in ("name", "mae", "median", "invalid_fraction", "exposure", "seconds")}, "capture_seconds": capture}
+                         for metrics, capture in zip(scene_metrics, captures)]
     return summary
+
+
+def white_exposures(scenes: list[ScenePixels], rig) -> list[float]:
+    """Auto exposure gain e_white of each scene under the all-white display (every superpixel at
+    set value 1, the brightest pattern), over all its masked pixels: the reference of capture
+    times (``summarise``)."""
+    white = torch.ones((1, rig.rows, rig.cols, 3))
+    return [scene_exposure(pixels, white) for pixels in scenes]
 
 
 def evaluation_columns(scenes, pixels_per_scene: int, seed: int) -> list:
@@ -662,14 +682,14 @@ def measure_methods(methods: list[Method], scenes, config: CompareConfig, noise_
     return representative, metrics
 
 
-def evaluate_methods(methods: list[Method], scenes, config: CompareConfig, exposure_ms: float, progress: bool) -> None:
+def evaluate_methods(methods: list[Method], scenes, config: CompareConfig, exposure_ms: float, whites: list[float], progress: bool) -> None:
     """Fill every method's ``evaluations`` with one summary per noise level (test scenes prepared
-    once by the caller; see ``measure_methods``)."""
+    once by the caller; see ``measure_methods``; ``exposure_ms`` and ``whites`` as ``summarise``)."""
     representative, metrics = measure_methods(methods, scenes, config, config.noise_scales, progress)
     for method, key in zip(methods, representative):
         if methods[key] is not method:
             method.info["same_patterns_as"] = methods[key].id
-        method.evaluations = [{"noise_scale": float(noise), **summarise(metrics[(key, float(noise))], method.num_patterns, exposure_ms)}
+        method.evaluations = [{"noise_scale": float(noise), **summarise(metrics[(key, float(noise))], method.num_patterns, exposure_ms, whites)}
                               for noise in config.noise_scales]
 
 
@@ -683,7 +703,7 @@ def specular_free_scenes(scenes: list, rig) -> tuple[list | None, str | None]:
         return None, str(error)
 
 
-def evaluate_specular_free(methods: list[Method], scenes, config: CompareConfig, exposure_ms: float, progress: bool) -> None:
+def evaluate_specular_free(methods: list[Method], scenes, config: CompareConfig, exposure_ms: float, whites: list[float], progress: bool) -> None:
     """Fill every method's ``specular_free`` summary: the default noise on the specular-free
     ``scenes`` at the exposure each scene had in the method's main evaluation (``evaluate_methods``
     ran first), so that only the specular light differs, not the exposure it forced."""
@@ -692,7 +712,7 @@ def evaluate_specular_free(methods: list[Method], scenes, config: CompareConfig,
                  for index, method in enumerate(methods)}
     representative, metrics = measure_methods(methods, scenes, config, (default,), progress, "specular-free check", exposures)
     for method, key in zip(methods, representative):
-        method.specular_free = summarise(metrics[(key, default)], method.num_patterns, exposure_ms)
+        method.specular_free = summarise(metrics[(key, default)], method.num_patterns, exposure_ms, whites)
 
 
 def method_record(method: Method, out_dir: Path) -> dict:
@@ -739,14 +759,15 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
         reasons = "; ".join(f"{entry['method']} at M = {entry['M']}: {entry['reason']}" for entry in skipped)
         raise InputError(f"nothing to compare ({reasons})")
     start = time.perf_counter()
-    evaluate_methods(methods, test_scenes, config, exposure_ms, progress)
+    whites = white_exposures(test_scenes, rig)
+    evaluate_methods(methods, test_scenes, config, exposure_ms, whites, progress)
     timings["evaluation_seconds"] = time.perf_counter() - start
     specular_free = {"enabled": config.specular_free_check}
     if free_reason is not None:
         specular_free["skipped"] = free_reason
     elif free_scenes is not None:
         start = time.perf_counter()
-        evaluate_specular_free(methods, free_scenes, config, exposure_ms, progress)
+        evaluate_specular_free(methods, free_scenes, config, exposure_ms, whites, progress)
         timings["specular_free_seconds"] = time.perf_counter() - start
     results = {
         "config": resolved,
@@ -754,6 +775,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
         "grid": [rig.rows, rig.cols],
         "exposure_ms": exposure_ms,
         "exposure_ms_source": exposure_source,
+        "white_exposures": dict(zip((pixels.name for pixels in test_scenes), whites)),
         "default_noise": config.default_noise,
         "noise_scales": [float(s) for s in config.noise_scales],
         "pattern_counts": list(config.pattern_counts),

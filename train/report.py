@@ -471,17 +471,22 @@ def _measurement_caption(results: dict) -> str:
         "times the rig's noise variances, clipping, quantisation) with auto exposure per scene, then reconstructed with the "
         f"analytic photometric stereo{_solver_text(results)} (the OLAT reference: Woodham least squares on all K images). "
         f"MAE and median are angular normal errors in degrees over {_pixels_text(results)}, averaged over scenes (each scene "
-        "weighs the same). Capture time = M x "
-        f"{results['exposure_ms']:g} ms ({results['exposure_ms_source']}). Compute time = wall seconds per scene of simulation plus "
+        f"weighs the same). {_capture_text(results)} Compute time = wall seconds per scene of simulation plus "
         "reconstruction on this machine's CPU. Exposure = mean auto-exposure gain. Cost = wall seconds spent learning "
         f"(training scenes only) or searching. Learning and searches used noise scale {default:g}. {_preset_text(results)}"
     )
 
 
+def _capture_text(results: dict) -> str:
+    return (f"Capture time = M x exposure time per image: {results['exposure_ms']:g} ms ({results['exposure_ms_source']}) for the "
+            "all-white display, times e / e_white for a pattern set that auto exposure gives gain e (the noise is added after e "
+            "in full-scale units, so e acts as integration time: dim patterns take longer), averaged over scenes.")
+
+
 def _preset_text(results: dict) -> str:
     preset = results["config"].get("heuristic_preset", "default")
     off, on = PRESET_LEVELS[preset]
-    published = "the published levels" if preset == "ddps" else "the published definitions use 0.1 and 0.9 (preset ddps)"
+    published = "the published levels" if preset == "ddps" else "the published definitions use 0.1 and 0.9: preset ddps"
     return f"Heuristic families use preset {preset}: off level {off:g}, on level {on:g} where a family has both ({published})."
 
 
@@ -551,7 +556,7 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
     short = f"{len(results['test_scenes'])} test scenes, noise scale {default:g}, analytic PS (OLAT: Woodham); MAE averaged over scenes."
 
     save_figure(chart_mae_vs_patterns(rows, f"{short} Learned: mean over seeds, bars = std."), out_dir / CHARTS["mae_vs_M"])
-    save_figure(chart_mae_vs_cost(rows, "capture_seconds", f"capture time (s) = M x {results['exposure_ms']:g} ms", "Accuracy against capture time",
+    save_figure(chart_mae_vs_cost(rows, "capture_seconds", f"capture time (s) = M x {results['exposure_ms']:g} ms x e / e_white", "Accuracy against capture time",
                                   short), out_dir / CHARTS["mae_vs_capture_time"])
     save_figure(chart_mae_vs_cost(rows, "compute_seconds", "compute time per scene (s): simulation + reconstruction, CPU",
                                   "Speed-accuracy: normal error against reconstruction time", short), out_dir / CHARTS["mae_vs_compute_time"])
@@ -586,9 +591,8 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
     if reference is not None:
         lines += [f"Reference: {reference['label']}: MAE {reference['mae']:.2f} deg, median {reference['median']:.2f} deg, "
                   f"capture {reference['capture_seconds']:.1f} s, compute {reference['compute_seconds']:.2f} s per scene.", ""]
-    capture = ", ".join(f"M = {m}: {m * results['exposure_ms'] / 1000:.2f} s" for m in counts)
     lines += ["Median angular error (deg):", "", pivot("median", 2), "",
-              f"Capture time (M x {results['exposure_ms']:g} ms exposure, the same for every method at one M): {capture}.", "",
+              "Capture time (s: M x exposure time, scaled by each method's exposure gain as stated above):", "", pivot("capture_seconds", 2), "",
               "Compute time (s per scene, simulation + reconstruction):", "", pivot("compute_seconds", 3), ""]
     for count in counts:
         at_m = [row for row in rows if row["M"] == count]
