@@ -243,7 +243,8 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
         for key in ("mae", "median", "under_5", "under_30", "invalid_fraction", "exposure", "capture_seconds", "compute_seconds"):
             assert np.isfinite(evaluation[key])
         # Exposure time scales with the gain relative to the all-white display, which no pattern outshines.
-        whites = [results["white_exposures"][scene["name"]] for scene in evaluation["scenes"]]
+        whites = results["white_exposures"]
+        assert [scene["name"] for scene in evaluation["scenes"]] == results["test_scenes"]
         assert evaluation["capture_seconds"] == pytest.approx(np.mean([method["M"] * 0.44 * scene["exposure"] / white
                                                                        for scene, white in zip(evaluation["scenes"], whites)]))
         assert all(scene["exposure"] >= white * (1 - 1e-6) for scene, white in zip(evaluation["scenes"], whites))

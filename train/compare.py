@@ -775,7 +775,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
         "grid": [rig.rows, rig.cols],
         "exposure_ms": exposure_ms,
         "exposure_ms_source": exposure_source,
-        "white_exposures": dict(zip((pixels.name for pixels in test_scenes), whites)),
+        "white_exposures": whites,  # e_white per test scene, in the order of test_scenes
         "default_noise": config.default_noise,
         "noise_scales": [float(s) for s in config.noise_scales],
         "pattern_counts": list(config.pattern_counts),

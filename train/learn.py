@@ -12,9 +12,9 @@ checkpoint continues exactly as an uninterrupted one.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import tempfile
-import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
