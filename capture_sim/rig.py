@@ -35,8 +35,9 @@ class Camera:
         K_cam: (3, 3) intrinsics in pixels for an image of ``height`` x ``width``.
         height: image rows in pixels.
         width: image columns in pixels.
-        exposure_ms: capture time per image in milliseconds (the rig TOML's
-            ``camera.exposure_ms``), or None where the rig does not give it.
+        exposure_ms: exposure time of one capture of the all-white display, in milliseconds (the
+            rig TOML's ``camera.exposure_ms``; the comparison scales it by each pattern set's
+            exposure gain), or None where the rig does not give it.
     """
 
     K_cam: tuple[tuple[float, float, float], ...]
@@ -47,6 +48,8 @@ class Camera:
     def __post_init__(self):
         if not (is_whole_number(self.height, 1, MAX_IMAGE_SIDE) and is_whole_number(self.width, 1, MAX_IMAGE_SIDE)):
             raise InputError(f"camera height and width must be whole numbers in 1..{MAX_IMAGE_SIDE}, got {self.height!r} x {self.width!r}")
+        if self.exposure_ms is not None:
+            object.__setattr__(self, "exposure_ms", camera_exposure_ms(self.exposure_ms))  # frozen: set once, as a float
         k = self.matrix()
         if not (np.isfinite(k).all() and k[0, 0] > 0 and k[1, 1] > 0):
             raise InputError(f"camera fx and fy must be positive and every intrinsic finite, got fx = {float(k[0, 0]):g}, fy = {float(k[1, 1]):g}")
@@ -268,7 +271,7 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
             K_cam=_as_nested(np.array([[cam["fx"], 0.0, cam["cx"]], [0.0, cam["fy"], cam["cy"]], [0.0, 0.0, 1.0]])),
             height=_whole_number("camera height", cam["height"]),
             width=_whole_number("camera width", cam["width"]),
-            exposure_ms=camera_exposure_ms(cam["exposure_ms"]) if "exposure_ms" in cam else None,
+            exposure_ms=cam.get("exposure_ms"),
         )
         display = config["display"]
         if "light_positions" in display:
@@ -312,7 +315,7 @@ def panel_size(panel_pixels, name: str = "panel_pixels") -> tuple[int, int]:
 
 
 def camera_exposure_ms(value) -> float:
-    """A rig's ``camera.exposure_ms`` (capture time per image) as a positive finite float."""
+    """A rig's ``camera.exposure_ms`` (exposure time of one all-white capture) as a positive finite float."""
     expected = "a positive number of milliseconds"
     exposure_ms = _number("camera exposure_ms", value, expected)
     if not (math.isfinite(exposure_ms) and exposure_ms > 0):

@@ -209,6 +209,9 @@ def scene_paths(paths) -> list[Path]:
 LIGHT_MISMATCH_M = 0.01
 """Metres: scene and rig light positions further apart than this are reported (a scene from
 another rig, or a stale calibration); closer ones are calibration rounding."""
+MILLIMETRE_MATCH_M = 0.2
+"""Metres: scene lights that, divided by 1000, lie within this of the rig's are the rig's display
+calibrated in millimetres (two calibrations of one display differ by ~0.1 m)."""
 
 
 def rig_for_scene(rig: Rig, scene: Scene) -> Rig:
@@ -224,8 +227,9 @@ def rig_for_scene(rig: Rig, scene: Scene) -> Rig:
                     exposure_ms=rig.camera.exposure_ms)
     lights = scene.light_positions.astype(np.float64)
     # A distant display is a valid scene (far-field tests), so the unit cannot be told from the
-    # distances alone; the rig's own grid in millimetres (raw DIR calibration) can.
-    if float(np.linalg.norm(lights / 1000.0 - rig.light_positions, axis=-1).max()) <= LIGHT_MISMATCH_M:
+    # distances alone; a grid near the rig's in millimetres (raw DIR calibration, or another
+    # calibration of the same display) can. A far-field scene built as exactly "rig x 1000" is refused too.
+    if float(np.linalg.norm(lights / 1000.0 - rig.light_positions, axis=-1).max()) <= MILLIMETRE_MATCH_M:
         raise InputError(f"scene {scene.name}: its light positions are rig {rig.name}'s in millimetres; scene files use metres (divide by 1000)")
     shift = float(np.linalg.norm(lights - rig.light_positions, axis=-1).max())
     if shift > LIGHT_MISMATCH_M:

@@ -261,7 +261,8 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int
     # index.json is written last: an interrupted run must not leave an earlier set's index over a
     # folder of mixed scenes (``displex demo`` reuses a folder whose index matches its settings).
     index_path.unlink(missing_ok=True)
-    new_folders = [folder for folder in (out_dir, *(out_dir / split for split in index["splits"])) if not folder.exists()]
+    # Folders this run creates (the splits, the set's folder and any missing parents), deepest first.
+    new_folders = [folder for folder in (*(out_dir / split for split in index["splits"]), out_dir, *out_dir.parents) if not folder.exists()]
     written = []
     try:
         for split, spec, scene in _synthesised(rig, height, width, seed, cast_shadows, "synthesising scenes", progress):
@@ -277,7 +278,7 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int
         # pick up as if they were the whole split.
         for path in written:
             path.unlink(missing_ok=True)
-        for folder in reversed(new_folders):  # splits first, then the set's folder
+        for folder in new_folders:
             if folder.is_dir() and not any(folder.iterdir()):
                 folder.rmdir()
         raise

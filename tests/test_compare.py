@@ -10,6 +10,7 @@ import torch
 from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import load_rig
 from capture_sim.synth import write_scene_set
+from patterns.families import make_patterns
 from train.compare import (
     DEFAULT_EXPOSURE_MS,
     CompareConfig,
@@ -119,6 +120,25 @@ def test_capture_time_is_M_exposures_scaled_by_the_gain_over_all_white():
     assert [scene["capture_seconds"] for scene in summary["scenes"]] == pytest.approx([4 * 0.44 * 2, 4 * 0.44 * 3])
     with pytest.raises(ValueError):
         summarise(scenes, 4, 440.0, [0.01])  # one white gain per scene
+
+
+def test_olat_reference_and_olat_patterns_take_the_same_capture_time(scenes):
+    """The OLAT reference's gain multiplies the raw OLAT stack, a pattern's the display's emission:
+    lighting every superpixel once, either way, must cost about the same exposure time (the
+    pattern version also carries the unlit superpixels' backlight, so it is a little brighter)."""
+    from train.compare import summarise, white_exposures
+    from train.evaluate import EvalSettings, evaluate_scene
+    from train.search import prepare_scenes
+
+    rig = dataclasses.replace(load_rig(), scale=7.0)  # the display's scale must cancel out
+    test_scenes = prepare_scenes([scenes / "test"], "test", rig, SIZE, 0)[:2]
+    whites = white_exposures(test_scenes, rig)
+    olat_patterns = make_patterns("olat", rig.num_lights, rig.rows, rig.cols)
+    reference = [evaluate_scene(pixels, "olat", EvalSettings(method="woodham", noise_scale=0.0), index).metrics for index, pixels in enumerate(test_scenes)]
+    patterns = [evaluate_scene(pixels, olat_patterns, EvalSettings(noise_scale=0.0), index).metrics for index, pixels in enumerate(test_scenes)]
+    reference_seconds = summarise(reference, rig.num_lights, 440.0, whites["olat"])["capture_seconds"]
+    pattern_seconds = summarise(patterns, rig.num_lights, 440.0, whites["patterns"])["capture_seconds"]
+    assert pattern_seconds <= reference_seconds <= 1.05 * pattern_seconds
 
 
 def test_rig_exposure_time():
@@ -242,9 +262,11 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
         assert len(evaluation["scenes"]) == 4
         for key in ("mae", "median", "under_5", "under_30", "invalid_fraction", "exposure", "capture_seconds", "compute_seconds"):
             assert np.isfinite(evaluation[key])
+        assert [scene["name"] for scene in evaluation["scenes"]] == results["test_scenes"]
+        if method["kind"] == "reference":
+            continue  # its gain is in other units (test_olat_reference_and_olat_patterns_take_the_same_capture_time)
         # Exposure time scales with the gain relative to the all-white display, which no pattern outshines.
         whites = results["white_exposures"]
-        assert [scene["name"] for scene in evaluation["scenes"]] == results["test_scenes"]
         assert evaluation["capture_seconds"] == pytest.approx(np.mean([method["M"] * 0.44 * scene["exposure"] / white
                                                                        for scene, white in zip(evaluation["scenes"], whites)]))
         assert all(scene["exposure"] >= white * (1 - 1e-6) for scene, white in zip(evaluation["scenes"], whites))
@@ -335,7 +357,7 @@ def test_parallel_subset_evaluation_matches_in_process_and_deduplicates(scenes, 
                 Method("olat_woodham", "reference", "olat_woodham", "OLAT", rig.num_lights, "olat")]
 
     serial, parallel = methods(), methods()
-    whites = [0.01] * len(test_scenes)
+    whites = {"patterns": [0.01] * len(test_scenes), "olat": [0.01] * len(test_scenes)}
     evaluate_methods(serial, test_scenes, config, 440.0, whites, progress=False)
     evaluate_methods(parallel, test_scenes, dataclasses.replace(config, eval_workers=2), 440.0, whites, progress=False)
     assert serial[1].info["same_patterns_as"] == "a" and serial[1].evaluations[0]["mae"] == serial[0].evaluations[0]["mae"]
@@ -362,7 +384,7 @@ def test_specular_free_evaluation_is_the_evaluation_of_the_diffuse_scenes(scenes
     config = tiny_config(scenes, eval_pixels_per_scene=40, solver={"max_shadow_iterations": 4})
     patterns = np.load(REPO / "patterns" / "data" / "ddps" / "initial_tri_complementary.npy").astype(np.float32)
     methods = [Method("a", "heuristic", "a", "a", 2, patterns)]
-    whites = [0.01] * len(free_scenes)
+    whites = {"patterns": [0.01] * len(free_scenes), "olat": [0.01] * len(free_scenes)}
     evaluate_methods(methods, prepare_scenes([scenes / "test"], "test", rig, SIZE, 0), config, 440.0, whites, progress=False)
     evaluate_specular_free(methods, free_scenes, config, 440.0, whites, progress=False)
     # The main evaluation's pixels (its scenes' masks) and exposures, set here independently.

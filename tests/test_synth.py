@@ -363,7 +363,7 @@ def test_interrupted_scene_set_leaves_no_index(rig, tmp_path, monkeypatch):
     assert (out / "train").is_dir()  # folders that were there before stay
     calls.clear()
     with pytest.raises(KeyboardInterrupt):
-        write_scene_set(tmp_path / "fresh", rig, height=12, width=14, seed=1, progress=False)
+        write_scene_set(tmp_path / "fresh" / "nested" / "set", rig, height=12, width=14, seed=1, progress=False)
     assert not (tmp_path / "fresh").exists()  # the folders the failed run made are removed with its scenes
 
 
@@ -371,7 +371,7 @@ def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tm
     import dataclasses
     import json
 
-    from capture_sim.errors import InputError
+    from capture_sim.errors import DisplexWarning, InputError
     from capture_sim.scene import save_scene, validate_scene
 
     scene = synthesize_scene("sphere", "lambertian", load_rig(), height=16, width=20, seed=0)
@@ -388,6 +388,11 @@ def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tm
 
     with pytest.raises(InputError, match="its light positions are rig .*'s in millimetres; scene files use metres"):
         rig_for_scene(load_rig(), dataclasses.replace(scene, light_positions=scene.light_positions * 1000))
+    recalibrated = scene.light_positions + np.float32(0.1)  # another calibration of the display, ~0.17 m off
+    with pytest.raises(InputError, match="in millimetres"):
+        rig_for_scene(load_rig(), dataclasses.replace(scene, light_positions=recalibrated * 1000))
+    with pytest.warns(DisplexWarning, match="differ from rig"):
+        rig_for_scene(load_rig(), dataclasses.replace(scene, light_positions=recalibrated))  # in metres: used, with a warning
     negative = scene.diffuse.copy()
     negative[0, 0, 0, 0] = -0.01  # a noisy polarisation split
     with pytest.raises(InputError, match="diffuse has negative radiance"):

@@ -30,8 +30,10 @@ import torch
 from tqdm import tqdm
 
 from capture_sim.atomic import write_json
+from capture_sim.display import display_emission
 from capture_sim.errors import DisplexWarning, InputError, check_seed
 from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, Rig, load_rig
+from capture_sim.synth import GENERATOR
 from capture_sim.toml_io import load_toml
 from patterns.families import FAMILIES, PRESETS, get_family, make_patterns
 from patterns.io import load_patterns, save_patterns
@@ -571,12 +573,25 @@ def summarise(scene_metrics: list[dict], num_patterns: int, exposure_ms: float, 
     return summary
 
 
-def white_exposures(scenes: list[ScenePixels], rig) -> list[float]:
+def white_exposures(scenes: list[ScenePixels], rig) -> dict[str, list[float]]:
     """Auto exposure gain e_white of each scene under the all-white display (every superpixel at
     set value 1, the brightest pattern), over all its masked pixels: the reference of capture
-    times (``summarise``)."""
+    times (``summarise``), in the units of the two kinds of gain.
+
+    Returns:
+        {"patterns": e_white per scene, "olat": the same in the units of the OLAT reference's gain},
+        which multiplies the raw OLAT stack (radiance per unit display intensity) where a pattern's
+        multiplies the display's emission s (P + B)^gamma: a superpixel lit at set value 1 emits
+        s (1 + B_k)^gamma, so the reference's e_white is e_white s mean_k (1 + B_k)^gamma.
+    """
     white = torch.ones((1, rig.rows, rig.cols, 3))
-    return [scene_exposure(pixels, white) for pixels in scenes]
+    whites = [scene_exposure(pixels, white) for pixels in scenes]
+    lit = float(display_emission(white, rig.backlight_flat(), rig.gamma, rig.scale).mean())
+    return {"patterns": whites, "olat": [value * lit for value in whites]}
+
+
+def _whites_of(method: "Method", whites: dict[str, list[float]]) -> list[float]:
+    return whites["olat" if method.kind == "reference" else "patterns"]
 
 
 def evaluation_columns(scenes, pixels_per_scene: int, seed: int) -> list:
@@ -682,14 +697,15 @@ def measure_methods(methods: list[Method], scenes, config: CompareConfig, noise_
     return representative, metrics
 
 
-def evaluate_methods(methods: list[Method], scenes, config: CompareConfig, exposure_ms: float, whites: list[float], progress: bool) -> None:
+def evaluate_methods(methods: list[Method], scenes, config: CompareConfig, exposure_ms: float, whites: dict, progress: bool) -> None:
     """Fill every method's ``evaluations`` with one summary per noise level (test scenes prepared
-    once by the caller; see ``measure_methods``; ``exposure_ms`` and ``whites`` as ``summarise``)."""
+    once by the caller; see ``measure_methods``; ``exposure_ms`` as ``summarise``, ``whites`` from
+    ``white_exposures``)."""
     representative, metrics = measure_methods(methods, scenes, config, config.noise_scales, progress)
     for method, key in zip(methods, representative):
         if methods[key] is not method:
             method.info["same_patterns_as"] = methods[key].id
-        method.evaluations = [{"noise_scale": float(noise), **summarise(metrics[(key, float(noise))], method.num_patterns, exposure_ms, whites)}
+        method.evaluations = [{"noise_scale": float(noise), **summarise(metrics[(key, float(noise))], method.num_patterns, exposure_ms, _whites_of(method, whites))}
                               for noise in config.noise_scales]
 
 
@@ -703,7 +719,7 @@ def specular_free_scenes(scenes: list, rig) -> tuple[list | None, str | None]:
         return None, str(error)
 
 
-def evaluate_specular_free(methods: list[Method], scenes, config: CompareConfig, exposure_ms: float, whites: list[float], progress: bool) -> None:
+def evaluate_specular_free(methods: list[Method], scenes, config: CompareConfig, exposure_ms: float, whites: dict, progress: bool) -> None:
     """Fill every method's ``specular_free`` summary: the default noise on the specular-free
     ``scenes`` at the exposure each scene had in the method's main evaluation (``evaluate_methods``
     ran first), so that only the specular light differs, not the exposure it forced."""
@@ -712,7 +728,7 @@ def evaluate_specular_free(methods: list[Method], scenes, config: CompareConfig,
                  for index, method in enumerate(methods)}
     representative, metrics = measure_methods(methods, scenes, config, (default,), progress, "specular-free check", exposures)
     for method, key in zip(methods, representative):
-        method.specular_free = summarise(metrics[(key, default)], method.num_patterns, exposure_ms, whites)
+        method.specular_free = summarise(metrics[(key, default)], method.num_patterns, exposure_ms, _whites_of(method, whites))
 
 
 def method_record(method: Method, out_dir: Path) -> dict:
@@ -739,7 +755,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
 
     Returns:
         The results dict written to ``results.json``: resolved ``config``, ``rig``, ``exposure_ms``,
-        scene names, ``methods`` (each with ``evaluations`` per noise level), ``skipped``,
+        ``white_exposures`` (e_white per test scene, ``white_exposures``), scene names, ``methods`` (each with ``evaluations`` per noise level), ``skipped``,
         ``summary`` (learned vs best heuristic, seed spread) and ``timings``.
     """
     from train.report import summary_tables, write_report
@@ -775,7 +791,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
         "grid": [rig.rows, rig.cols],
         "exposure_ms": exposure_ms,
         "exposure_ms_source": exposure_source,
-        "white_exposures": whites,  # e_white per test scene, in the order of test_scenes
+        "white_exposures": whites["patterns"],  # e_white per test scene, in the order of test_scenes
         "default_noise": config.default_noise,
         "noise_scales": [float(s) for s in config.noise_scales],
         "pattern_counts": list(config.pattern_counts),
@@ -801,8 +817,6 @@ def _scene_set_matches(index_path: Path, rig, config: CompareConfig) -> bool:
     """Whether a synthesised scene set (its ``index.json``) is the one ``run_demo`` would write:
     this generator, rig, size and seed, without cast shadows. A rerun then reuses it instead of
     silently using scenes of other settings (e.g. a ``scenes synth --cast-shadows`` set)."""
-    from capture_sim.synth import GENERATOR
-
     if not index_path.exists():
         return False
     try:

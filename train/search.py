@@ -480,8 +480,8 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
     parameters, start and best MAE, evaluations), ``<out stem>.trace.csv`` (every evaluation),
     ``<out stem>.trace.png`` (objective against evaluation index) and ``<out stem>.config.json``;
     TensorBoard scalars under ``logdir`` if given. While it runs, every 10 evaluations go to
-    ``<out stem>.trace.partial.csv`` (a stale one from an earlier run is removed once the scenes
-    are loaded); a finished search removes it, and a search interrupted during its evaluations
+    ``<out stem>.trace.partial.csv`` (a stale one from an earlier run is removed when the run
+    starts); a finished search removes it, and a search interrupted during its evaluations
     (Ctrl-C, an error) leaves it and writes none of the other files.
 
     Args:
@@ -504,13 +504,13 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
     low, high = family.bounds(config.num_patterns, rig.rows, rig.cols)
     start = default_vector(config.family, config.num_patterns, rig.rows, rig.cols, config.start, config.seed).numpy()
     check_parameter_count(config.algorithm, start.size)  # before the scenes, which can take minutes
+    trace, partial = trace_path(out), partial_trace_path(out)
+    # A partial trace left by an earlier interrupted run would pass for this run's if this one is
+    # interrupted before its first flush (or while the scenes load).
+    _remove_file(partial)
     scenes = prepare_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed)
     objective = PatternObjective(config.family, config.num_patterns, scenes, rig.rows, rig.cols, config.noise_scale,
                                  config.sharpness, config.pixels_per_scene, config.seed)
-    trace, partial = trace_path(out), partial_trace_path(out)
-    # A partial trace left by an earlier interrupted run would pass for this run's if this one is
-    # interrupted before its first flush.
-    _remove_file(partial)
     writer = summary_writer(logdir)
     bar = tqdm(total=config.maxeval, desc=f"search {config.family} M={config.num_patterns} {config.algorithm}", unit="eval", disable=not progress)
     seen: list = []
