@@ -367,10 +367,13 @@ class _ShadowedLighting(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_vectors):
         field, normal = ctx.field, ctx.normal
-        points_t = field.points.T[None, None]
-        # b = S[:3] - X S[3] with S = (w G)^T, so dL/dS[:3] = dL/db and dL/dS[3] = -X . dL/db.
-        grad_summed = torch.cat([grad_vectors, -(grad_vectors * points_t).sum(2, keepdim=True)], dim=2)
-        grad_summed = grad_summed.reshape(-1, field.num_pixels)  # (12 M, N)
+        # b = S[:3] - X S[3] with S = (w G)^T, so dL/dS[:3] = dL/db and dL/dS[3] = -X . dL/db,
+        # written into one buffer (a cat of the two parts copies twice as much).
+        grad_summed = grad_vectors.new_empty((*grad_vectors.shape[:2], 4, field.num_pixels))
+        grad_summed[:, :, :3] = grad_vectors
+        x, y, z = field.points.T
+        torch.mul(grad_vectors[:, :, 0], x, out=grad_summed[:, :, 3]).addcmul_(grad_vectors[:, :, 1], y).addcmul_(grad_vectors[:, :, 2], z).neg_()
+        grad_summed = grad_summed.view(-1, field.num_pixels)  # (12 M, N)
         grad_lighting = torch.zeros((field.lights.shape[0], grad_summed.shape[0]), dtype=grad_vectors.dtype)
         whole = field.sees_all(None, normal) if ctx.whole is None else ctx.whole
         for start, stop, rows in field.cache_rows(None):
