@@ -367,6 +367,34 @@ def test_parallel_subset_evaluation_matches_in_process_and_deduplicates(scenes, 
     assert serial[2].evaluations[0]["mae"] < serial[0].evaluations[0]["mae"]
 
 
+def test_ctrl_c_during_parallel_evaluation_stops_the_workers(scenes, monkeypatch):
+    """Ctrl-C reaches the workers and the parent (one process group). Emulated without signalling
+    the group (that would reach the test runner): the first job interrupts its own worker, then the
+    parent, then sleeps. The workers must ignore it and the parent must stop them and raise
+    KeyboardInterrupt at once; it used to hang on a worker that died holding the queue's lock."""
+    import multiprocessing
+    import os
+    import signal
+    import time
+
+    import train.compare as compare
+    from train.search import prepare_scenes
+
+    def interrupted_job(*args):
+        os.kill(os.getpid(), signal.SIGINT)  # ignored by a worker
+        os.kill(os.getppid(), signal.SIGINT)
+        time.sleep(60)
+
+    monkeypatch.setattr(compare, "_evaluate_job", interrupted_job)  # forked workers inherit it
+    config = tiny_config(scenes, eval_workers=2)
+    methods = [Method(name, "heuristic", name, name, 2, make_patterns(name, 2).numpy()) for name in ("tri_complementary", "tri_gradient")]
+    test_scenes = prepare_scenes([scenes / "test"], "test", load_rig(), SIZE, 0)
+    began = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        compare.measure_methods(methods, test_scenes, config, (1.0,), progress=False)
+    assert time.perf_counter() - began < 30 and not multiprocessing.active_children()
+
+
 def test_specular_free_evaluation_is_the_evaluation_of_the_diffuse_scenes(scenes, tmp_path):
     """``evaluate_specular_free`` measures each method on ``Scene.without_specular`` copies, at the
     default noise, with the comparison's pixels, noise draws and the main evaluation's exposures; a

@@ -20,6 +20,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import multiprocessing
+import signal
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -632,6 +634,16 @@ _WORKER_STATE: dict = {}
 def _init_worker() -> None:
     # Forked children must not enter the parent's OpenMP pool (as torch's DataLoader workers).
     torch.set_num_threads(1)
+    # Ctrl-C reaches the whole process group. The parent stops the workers (Pool.terminate); a
+    # worker that raised KeyboardInterrupt itself could die holding the pool's queue lock, and the
+    # parent would wait for it forever.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _evaluate_keyed(job: tuple) -> tuple:
+    """``_evaluate_job`` of ``job`` = (key, patterns, reference, noise, exposures), returned with its key."""
+    key, *arguments = job
+    return key, _evaluate_job(*arguments)
 
 
 def _evaluate_job(patterns, reference: bool, noise: float, exposures=None) -> list[dict]:
@@ -678,15 +690,18 @@ def measure_methods(methods: list[Method], scenes, config: CompareConfig, noise_
     bar = tqdm(total=len(jobs), desc=what, unit="set", disable=not progress)
     try:
         if config.eval_workers > 1 and len(jobs) > 1:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-
-            with ProcessPoolExecutor(config.eval_workers, mp_context=multiprocessing.get_context("fork"), initializer=_init_worker) as pool:
-                futures = {pool.submit(_evaluate_job, method.patterns, method.kind == "reference", noise, exposures.get(key)): (key, noise)
-                           for key, method, noise in jobs}
-                for future in as_completed(futures):
-                    metrics[futures[future]] = future.result()
+            pool = multiprocessing.get_context("fork").Pool(config.eval_workers, initializer=_init_worker)
+            try:
+                keyed = [((key, noise), method.patterns, method.kind == "reference", noise, exposures.get(key)) for key, method, noise in jobs]
+                for key, result in pool.imap_unordered(_evaluate_keyed, keyed):
+                    metrics[key] = result
                     bar.update(1)
+                pool.close()
+            except BaseException:  # an error in a job, or Ctrl-C: stop the other jobs at once
+                pool.terminate()
+                raise
+            finally:
+                pool.join()
         else:
             for key, method, noise in jobs:
                 metrics[(key, noise)] = _evaluate_job(method.patterns, method.kind == "reference", noise, exposures.get(key))
