@@ -303,8 +303,18 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     monkeypatch.setattr("train.compare.train_patterns", no_learning)
     again = run_compare(config, tmp_path, progress=False)
     assert next(m for m in again["methods"] if m["kind"] == "learned")["cost_seconds"] == pytest.approx(learned["cost_seconds"])
+    # A rerun refused for another config leaves the last finished run's files as they were,
+    # the heuristic pattern files included (they used to be rewritten before the refusal).
+    before = {path: path.read_bytes() for path in (tmp_path / "patterns").glob("*.npz")}
+    changed = tiny_config(scenes, learned={"steps": 3, "val_every": 0, "pixels_per_scene": 64}, heuristic_preset="ddps")
     with pytest.raises(InputError, match="another config"):
-        run_compare(tiny_config(scenes, learned={"steps": 3, "val_every": 0, "pixels_per_scene": 64}), tmp_path, progress=False)
+        run_compare(changed, tmp_path, progress=False)
+    assert {path: path.read_bytes() for path in (tmp_path / "patterns").glob("*.npz")} == before
+    # An external file in the patterns folder would be rewritten by the run that reads it.
+    inside = tiny_config(scenes, external=[{"name": "mine", "path": str(tmp_path / "patterns" / "heuristic_tri_complementary_M2.npz")}])
+    with pytest.raises(InputError, match=r"\[\[external\]\] mine: .* lies in .*patterns, whose files compare rewrites"):
+        run_compare(inside, tmp_path, progress=False)
+    assert {path: path.read_bytes() for path in (tmp_path / "patterns").glob("*.npz")} == before
 
 
 def test_demo_reuses_only_a_scene_set_of_its_own_settings(tmp_path):

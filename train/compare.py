@@ -433,15 +433,34 @@ def _run_record(path: Path) -> dict:
     return json.loads(record.read_text()) if record.exists() else {}
 
 
+def _learned_output(config: CompareConfig, num_patterns: int, seed: int, rerender: bool, pattern_dir: Path) -> tuple[str, Path, TrainConfig]:
+    """Method id, pattern file and TrainConfig of one learning run."""
+    method_id = f"learned{'_rerender' if rerender else ''}_M{num_patterns}_seed{seed}"
+    return method_id, pattern_dir / f"{method_id}.npz", config.train_config(num_patterns, seed, rerender)
+
+
+def _check_reusable_runs(config: CompareConfig, pattern_dir: Path) -> None:
+    """Refuse (``_reusable``) before anything is written: a folder whose learning or search outputs
+    were made with another config would otherwise be refused only after the heuristic pattern
+    files of the last finished run had been rewritten under it."""
+    for count in config.learned_pattern_counts():
+        for seed in config.seeds_for(count):
+            _, path, train_config = _learned_output(config, count, seed, False, pattern_dir)
+            _reusable(path, config_to_dict(train_config), "learned patterns")
+    for count in config.rerender_counts:
+        _, path, train_config = _learned_output(config, count, config.seeds_for(count)[0], True, pattern_dir)
+        _reusable(path, config_to_dict(train_config), "learned patterns")
+    for run in config.search:
+        _reusable(pattern_dir / f"{run.name}.npz", config_to_dict(config.search_config(run)), "searched patterns")
+
+
 def learned_method(config: CompareConfig, num_patterns: int, seed: int, pattern_dir: Path, progress: bool,
                    rerender: bool = False, logdir: Path | None = None) -> Method:
     """Learn (or reuse) the patterns of one learning run (``rerender``: with the re-rendering loss).
 
     TensorBoard logs of a new run go to ``logdir/<method id>`` when ``logdir`` is given.
     """
-    train_config = config.train_config(num_patterns, seed, rerender)
-    method_id = f"learned{'_rerender' if rerender else ''}_M{num_patterns}_seed{seed}"
-    path = pattern_dir / f"{method_id}.npz"
+    method_id, path, train_config = _learned_output(config, num_patterns, seed, rerender, pattern_dir)
     existing = _reusable(path, config_to_dict(train_config), "learned patterns")
     if existing is None:
         start = time.perf_counter()
@@ -508,6 +527,7 @@ def collect_methods(config: CompareConfig, rig, pattern_dir: Path, progress: boo
     """
     # External files are read first: an unreadable one stops the comparison before minutes of learning.
     external, skipped = external_methods(config, rig)
+    _check_reusable_runs(config, pattern_dir)
     methods: list[Method] = []
     timings = {"learning_seconds": 0.0, "search_seconds": 0.0}
     for count in config.pattern_counts:
@@ -777,6 +797,11 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
 
     out_dir = Path(out_dir)
     began = time.perf_counter()
+    pattern_dir = out_dir / "patterns"
+    for item in config.external:
+        if Path(item.path).resolve().is_relative_to(pattern_dir.resolve()):
+            raise InputError(f"[[external]] {item.name}: {item.path} lies in {pattern_dir}, whose files compare rewrites; "
+                             "copy it elsewhere or choose another output folder")
     rig = load_rig(config.rig)
     exposure_ms, exposure_source = rig_exposure_ms(rig)
     resolved = compare_config_to_dict(config)
@@ -784,7 +809,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     test_scenes = [scene_pixels(scene, rig, require_normals=True) for scene in test_raw]
     free_scenes, free_reason = specular_free_scenes(test_raw, rig) if config.specular_free_check else (None, None)
     del test_raw  # learning runs next: keep the prepared pixels only, not the full-frame stacks
-    methods, skipped, timings = collect_methods(config, rig, out_dir / "patterns", progress, logdir=out_dir / "tensorboard")
+    methods, skipped, timings = collect_methods(config, rig, pattern_dir, progress, logdir=out_dir / "tensorboard")
     if not methods:
         # CompareConfig refuses configs that list nothing, so every listed method was skipped.
         reasons = "; ".join(f"{entry['method']} at M = {entry['M']}: {entry['reason']}" for entry in skipped)
