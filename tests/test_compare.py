@@ -141,6 +141,17 @@ def test_olat_reference_and_olat_patterns_take_the_same_capture_time(scenes):
     assert pattern_seconds <= reference_seconds <= 1.05 * pattern_seconds
 
 
+def test_noise_verdict_says_on_which_side_of_one_the_ratio_is():
+    from train.report import noise_verdict
+
+    assert noise_verdict(0.86, 0.80) == "the learned advantage grows"
+    assert noise_verdict(0.86, 0.95) == "the learned advantage shrinks"
+    assert noise_verdict(0.86, 0.865) == "the learned advantage stays about the same"
+    assert noise_verdict(1.068, 1.0) == "learned patterns are no better than the best heuristic at either end"
+    assert noise_verdict(0.95, 1.02) == "the learned advantage is lost"
+    assert noise_verdict(1.02, 0.95) == "learned patterns overtake the best heuristic"
+
+
 def test_rig_exposure_time():
     assert rig_exposure_ms(load_rig("dir-odyssey-ark"))[0] == 440.0
     assert rig_exposure_ms(load_rig("panel-32in-5x10"))[0] > 0
@@ -278,7 +289,8 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     report = (tmp_path / "report.md").read_text()
     assert results["summary"]["rerender"][0]["M"] == 2
     for text in ("method x M", "MAE against noise level", "How the advantage", "Capture time", "Compute time", "OLAT + Woodham", "normal + re-rendering",
-                 "Heuristic families use preset default: off level 0, on level 1"):
+                 "Heuristic families use preset default: off level 0, on level 1",
+                 "Learning: M = 2: 2 steps from tri_complementary; training scenes: "):
         assert text in report
     for file_name in CHARTS.values():
         assert (tmp_path / file_name).stat().st_size > 0 and f"({file_name})" in report

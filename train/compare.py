@@ -43,7 +43,7 @@ from train.capture import scene_exposure
 from train.config_io import config_from_dict, config_to_dict, json_value
 from train.evaluate import EvalSettings, evaluate_scene
 from reconstruct.photometric_stereo import PSConfig
-from train.learn import TrainConfig, names_pattern_file, train_patterns
+from train.learn import TrainConfig, auto_init_family, names_pattern_file, train_patterns
 from train.search import SearchConfig, run_search, trace_chart_path
 from train.scene_pixels import ScenePixels, fixed_pixel_subsets, scene_pixels
 from train.scene_sets import resolve_scenes
@@ -472,7 +472,8 @@ def learned_method(config: CompareConfig, num_patterns: int, seed: int, pattern_
     else:
         seconds = _run_record(path).get("seconds")
         patterns, val_history = existing["patterns"], existing["meta"].get("val_mae_history", [])
-    info = {"steps": train_config.steps, "init": train_config.init, "rerender_weight": train_config.rerender_weight, "val_mae_history": val_history}
+    init = auto_init_family(num_patterns) if train_config.init == "auto" else train_config.init
+    info = {"steps": train_config.steps, "init": init, "rerender_weight": train_config.rerender_weight, "val_mae_history": val_history}
     if rerender:
         return Method(method_id, "rerender", "learned_rerender", f"learned, normal + re-rendering loss (weight {train_config.rerender_weight:g})",
                       num_patterns, patterns, str(path), seconds, seed, info)

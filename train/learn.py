@@ -143,10 +143,15 @@ def names_pattern_file(init) -> bool:
     return isinstance(init, str) and Path(init).suffix in (".npz", ".npy")
 
 
+def auto_init_family(num_patterns: int) -> str:
+    """The family ``init = 'auto'`` starts M patterns from (see ``TrainConfig.init``)."""
+    return "tri_complementary" if num_patterns <= 2 else "mono_gradient"
+
+
 def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
     """(M, R, C, 3) starting patterns from a family name, 'auto' or a pattern file."""
     if config.init == "auto":
-        family = "tri_complementary" if config.num_patterns <= 2 else "mono_gradient"
+        family = auto_init_family(config.num_patterns)
         if not get_family(family).supports(config.num_patterns, rows, cols):
             raise InputError(f"init 'auto' starts M = {config.num_patterns} from {family}, which does not support it on a "
                              f"{rows} x {cols} grid; choose a family that does with --init (see displex patterns list --M {config.num_patterns})")
