@@ -1,6 +1,7 @@
 """Comparison: config loading, the derived tables against plain computations, and a tiny end-to-end run."""
 import dataclasses
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -329,6 +330,21 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     assert {path: path.read_bytes() for path in (tmp_path / "patterns").glob("*.npz")} == before
 
 
+def test_test_scenes_listed_twice_are_refused_and_training_scenes_among_them_warned(scenes, tmp_path):
+    from train.compare import _check_scene_lists
+
+    twice = tiny_config(scenes, test_scenes=[str(scenes / "test"), str(scenes / "test") + "/"])
+    with pytest.raises(InputError, match="test_scenes name the same scene file twice"):
+        run_compare(twice, tmp_path, progress=False)
+    leaking = tiny_config(scenes, test_scenes=[str(scenes / "train")])
+    with pytest.warns(DisplexWarning, match=r"test scene\(s\) are also training scenes"):
+        _check_scene_lists(leaking)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _check_scene_lists(dataclasses.replace(leaking, learned_counts=[], search=()))  # nothing learned there: no warning
+        _check_scene_lists(tiny_config(scenes))
+
+
 def test_demo_reuses_only_a_scene_set_of_its_own_settings(tmp_path):
     from capture_sim.synth import write_scene_set
     from train.compare import _scene_set_matches
@@ -391,9 +407,9 @@ def test_parallel_subset_evaluation_matches_in_process_and_deduplicates(scenes, 
 
 def test_ctrl_c_during_parallel_evaluation_stops_the_workers(scenes, monkeypatch):
     """Ctrl-C reaches the workers and the parent (one process group). Emulated without signalling
-    the group (that would reach the test runner): the first job interrupts its own worker, then the
-    parent, then sleeps. The workers must ignore it and the parent must stop them and raise
-    KeyboardInterrupt at once; it used to hang on a worker that died holding the queue's lock."""
+    the group (that would reach the test runner): each job interrupts its own worker, one also
+    the parent, and both sleep. The workers must ignore it and the parent must stop them and raise
+    KeyboardInterrupt at once; it used to hang on a worker that died holding a pool's queue lock."""
     import multiprocessing
     import os
     import signal
@@ -402,19 +418,39 @@ def test_ctrl_c_during_parallel_evaluation_stops_the_workers(scenes, monkeypatch
     import train.compare as compare
     from train.search import prepare_scenes
 
-    def interrupted_job(*args):
+    methods = [Method(name, "heuristic", name, name, 2, make_patterns(name, 2).numpy()) for name in ("tri_complementary", "tri_gradient")]
+
+    def interrupted_job(patterns, *args):
         os.kill(os.getpid(), signal.SIGINT)  # ignored by a worker
-        os.kill(os.getppid(), signal.SIGINT)
+        if np.array_equal(patterns, methods[0].patterns):  # one Ctrl-C for the parent
+            time.sleep(0.5)  # the parent is waiting for results by now
+            os.kill(os.getppid(), signal.SIGINT)
         time.sleep(60)
 
     monkeypatch.setattr(compare, "_evaluate_job", interrupted_job)  # forked workers inherit it
     config = tiny_config(scenes, eval_workers=2)
-    methods = [Method(name, "heuristic", name, name, 2, make_patterns(name, 2).numpy()) for name in ("tri_complementary", "tri_gradient")]
     test_scenes = prepare_scenes([scenes / "test"], "test", load_rig(), SIZE, 0)
     began = time.perf_counter()
     with pytest.raises(KeyboardInterrupt):
         compare.measure_methods(methods, test_scenes, config, (1.0,), progress=False)
     assert time.perf_counter() - began < 30 and not multiprocessing.active_children()
+
+
+def test_an_error_in_a_parallel_evaluation_job_reaches_the_caller(scenes, monkeypatch):
+    import multiprocessing
+
+    import train.compare as compare
+    from train.search import prepare_scenes
+
+    def failing_job(*args):
+        raise InputError("scene x: something is wrong")
+
+    monkeypatch.setattr(compare, "_evaluate_job", failing_job)
+    methods = [Method(name, "heuristic", name, name, 2, make_patterns(name, 2).numpy()) for name in ("tri_complementary", "tri_gradient")]
+    test_scenes = prepare_scenes([scenes / "test"], "test", load_rig(), SIZE, 0)
+    with pytest.raises(InputError, match="scene x: something is wrong"):
+        compare.measure_methods(methods, test_scenes, tiny_config(scenes, eval_workers=2), (1.0, 4.0), progress=False)
+    assert not multiprocessing.active_children()
 
 
 def test_specular_free_evaluation_is_the_evaluation_of_the_diffuse_scenes(scenes, tmp_path):

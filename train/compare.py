@@ -21,11 +21,13 @@ import dataclasses
 import json
 import math
 import multiprocessing
+import multiprocessing.connection
 import signal
 import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -35,6 +37,7 @@ from capture_sim.atomic import write_json
 from capture_sim.display import display_emission
 from capture_sim.errors import DisplexWarning, InputError, check_seed
 from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, Rig, load_rig
+from capture_sim.scene import scene_paths
 from capture_sim.synth import GENERATOR
 from capture_sim.toml_io import load_toml
 from patterns.families import FAMILIES, PRESETS, get_family, make_patterns
@@ -655,9 +658,7 @@ _WORKER_STATE: dict = {}
 def _init_worker() -> None:
     # Forked children must not enter the parent's OpenMP pool (as torch's DataLoader workers).
     torch.set_num_threads(1)
-    # Ctrl-C reaches the whole process group. The parent stops the workers (Pool.terminate); a
-    # worker that raised KeyboardInterrupt itself could die holding the pool's queue lock, and the
-    # parent would wait for it forever.
+    # Ctrl-C reaches the whole process group: the parent stops the workers (``_evaluate_in_workers``).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
@@ -665,6 +666,66 @@ def _evaluate_keyed(job: tuple) -> tuple:
     """``_evaluate_job`` of ``job`` = (key, patterns, reference, noise, exposures), returned with its key."""
     key, *arguments = job
     return key, _evaluate_job(*arguments)
+
+
+def _worker_main(jobs: list, connection) -> None:
+    """A forked evaluation worker: runs its share of the jobs and sends ("result", (key, metrics))
+    per job, or ("error", exception) and stops."""
+    _init_worker()
+    try:
+        for job in jobs:
+            connection.send(("result", _evaluate_keyed(job)))
+    except Exception as error:  # the parent re-raises it (an InputError stays one clear line)
+        try:
+            connection.send(("error", error))
+        except Exception:  # an exception that cannot be pickled
+            connection.send(("error", RuntimeError(f"{type(error).__name__}: {error}")))
+    finally:
+        connection.close()
+
+
+def _evaluate_in_workers(jobs: list, workers: int, on_result: Callable[[tuple, list], None], poll_seconds: float = 0.2) -> None:
+    """Run ``_evaluate_keyed`` over ``jobs`` in ``workers`` forked processes (job i in worker
+    i mod workers; they inherit the scenes), calling ``on_result(key, metrics)`` as results arrive.
+
+    Each worker reports on its own pipe and shares no lock with the parent, so the parent can stop
+    them at any moment: on an error or Ctrl-C it kills them and re-raises. (A multiprocessing Pool
+    can hang there: its terminate waits for a queue lock that an idle or dying worker holds.)
+    The parent waits in slices of ``poll_seconds`` so that a Ctrl-C that the kernel hands to
+    another thread is acted on promptly.
+    """
+    context = multiprocessing.get_context("fork")
+    processes, pending = [], {}
+    try:
+        for index in range(workers):
+            share = jobs[index::workers]
+            if not share:
+                continue
+            receiver, sender = context.Pipe(duplex=False)
+            process = context.Process(target=_worker_main, args=(share, sender), daemon=True)
+            processes.append(process)  # before start: a Ctrl-C during the start must still stop it
+            pending[receiver] = len(share)
+            process.start()
+            sender.close()  # the parent keeps the receiving end only, so a dead worker reads as EOF
+        while pending:
+            for connection in multiprocessing.connection.wait(list(pending), timeout=poll_seconds):
+                try:
+                    kind, payload = connection.recv()
+                except EOFError:
+                    raise RuntimeError("an evaluation worker exited before finishing its jobs (out of memory?)") from None
+                if kind == "error":
+                    raise payload
+                on_result(*payload)
+                pending[connection] -= 1
+                if not pending[connection]:
+                    del pending[connection]
+    finally:
+        for process in processes:
+            if process.pid is not None:  # started
+                process.kill()  # a no-op on a finished one
+                process.join()
+        for connection in pending:
+            connection.close()
 
 
 def _evaluate_job(patterns, reference: bool, noise: float, exposures=None) -> list[dict]:
@@ -711,18 +772,12 @@ def measure_methods(methods: list[Method], scenes, config: CompareConfig, noise_
     bar = tqdm(total=len(jobs), desc=what, unit="set", disable=not progress)
     try:
         if config.eval_workers > 1 and len(jobs) > 1:
-            pool = multiprocessing.get_context("fork").Pool(config.eval_workers, initializer=_init_worker)
-            try:
-                keyed = [((key, noise), method.patterns, method.kind == "reference", noise, exposures.get(key)) for key, method, noise in jobs]
-                for key, result in pool.imap_unordered(_evaluate_keyed, keyed):
-                    metrics[key] = result
-                    bar.update(1)
-                pool.close()
-            except BaseException:  # an error in a job, or Ctrl-C: stop the other jobs at once
-                pool.terminate()
-                raise
-            finally:
-                pool.join()
+            def collect(key, result):
+                metrics[key] = result
+                bar.update(1)
+
+            keyed = [((key, noise), method.patterns, method.kind == "reference", noise, exposures.get(key)) for key, method, noise in jobs]
+            _evaluate_in_workers(keyed, config.eval_workers, collect)
         else:
             for key, method, noise in jobs:
                 metrics[(key, noise)] = _evaluate_job(method.patterns, method.kind == "reference", noise, exposures.get(key))
@@ -803,6 +858,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
         if Path(item.path).resolve().is_relative_to(pattern_dir.resolve()):
             raise InputError(f"[[external]] {item.name}: {item.path} lies in {pattern_dir}, whose files compare rewrites; "
                              "copy it elsewhere or choose another output folder")
+    _check_scene_lists(config)
     rig = load_rig(config.rig)
     exposure_ms, exposure_source = rig_exposure_ms(rig)
     resolved = compare_config_to_dict(config)
@@ -852,6 +908,20 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     write_json(out_dir / "results.json", results)
     write_json(out_dir / "config.json", resolved)
     return results
+
+
+def _check_scene_lists(config: CompareConfig) -> None:
+    """Refuse a test scene file listed twice (it would weigh twice in every mean); warn when a
+    test scene is also a training scene of the learning or search runs (its MAE is not held out)."""
+    test_files = [path.resolve() for path in scene_paths(config.test_scenes)]
+    repeated = sorted({str(path) for path in test_files if test_files.count(path) > 1})
+    if repeated:
+        raise InputError(f"test_scenes name the same scene file twice: {', '.join(repeated)}")
+    if config.learned_pattern_counts() or config.rerender_counts or config.search:
+        shared = sorted(set(test_files) & {path.resolve() for path in scene_paths(config.train_scenes)})
+        if shared:
+            warnings.warn(f"{len(shared)} test scene(s) are also training scenes ({', '.join(path.name for path in shared)}): "
+                          "their MAE is not measured on held-out scenes", DisplexWarning, stacklevel=2)
 
 
 def _scene_set_matches(index_path: Path, rig, config: CompareConfig) -> bool:
