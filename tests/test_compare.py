@@ -1,6 +1,7 @@
 """Comparison: config loading, the derived tables against plain computations, and a tiny end-to-end run."""
 import dataclasses
 import json
+import os
 import warnings
 from pathlib import Path
 
@@ -316,6 +317,15 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     monkeypatch.setattr("train.compare.train_patterns", no_learning)
     again = run_compare(config, tmp_path, progress=False)
     assert next(m for m in again["methods"] if m["kind"] == "learned")["cost_seconds"] == pytest.approx(learned["cost_seconds"])
+    # Scene files rewritten since the run (same paths, same config) are not silently reused.
+    scene_file = sorted((scenes / "train").glob("*.npz"))[0]
+    stat = scene_file.stat()
+    os.utime(scene_file, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
+    try:
+        with pytest.raises(InputError, match="made from scene files that have changed since"):
+            run_compare(config, tmp_path, progress=False)
+    finally:
+        os.utime(scene_file, ns=(stat.st_atime_ns, stat.st_mtime_ns))
     # A rerun refused for another config leaves the last finished run's files as they were,
     # the heuristic pattern files included (they used to be rewritten before the refusal).
     before = {path: path.read_bytes() for path in (tmp_path / "patterns").glob("*.npz")}

@@ -421,14 +421,26 @@ class Method:
     specular_free: dict | None = None
 
 
-def _reusable(path: Path, resolved: dict, what: str) -> dict | None:
-    """Meta of an existing output made with the same config; None if absent. Other configs raise."""
+def _reusable(path: Path, run_config, what: str) -> dict | None:
+    """Meta and patterns of an existing output made with the same config (a TrainConfig or
+    SearchConfig) from the same scene files; None if absent. Another config, or scene files that
+    changed since (``scene_files``; runs recorded without them are taken as they are), raise."""
     if not path.exists():
         return None
     patterns, meta = load_patterns(path)
-    if meta.get("config") != resolved:
+    if meta.get("config") != config_to_dict(run_config):
         raise InputError(f"{path} holds {what} made with another config; delete it or choose another output folder")
+    recorded = _run_record(path).get("scene_files")
+    if recorded is not None and recorded != scene_files(run_config):
+        raise InputError(f"{path} holds {what} made from scene files that have changed since; delete it or choose another output folder")
     return {"meta": meta, "patterns": patterns}
+
+
+def scene_files(run_config) -> list[list]:
+    """[path, size in bytes, modification time in ns] of every scene file a learning or search
+    config reads (none for the default synthetic scenes): what a reused run must have been made from."""
+    names = (*run_config.scenes, *getattr(run_config, "val_scenes", ()))
+    return [[str(path.resolve()), path.stat().st_size, path.stat().st_mtime_ns] for path in scene_paths(names)]
 
 
 def _run_record(path: Path) -> dict:
@@ -449,12 +461,12 @@ def _check_reusable_runs(config: CompareConfig, pattern_dir: Path) -> None:
     for count in config.learned_pattern_counts():
         for seed in config.seeds_for(count):
             _, path, train_config = _learned_output(config, count, seed, False, pattern_dir)
-            _reusable(path, config_to_dict(train_config), "learned patterns")
+            _reusable(path, train_config, "learned patterns")
     for count in config.rerender_counts:
         _, path, train_config = _learned_output(config, count, config.seeds_for(count)[0], True, pattern_dir)
-        _reusable(path, config_to_dict(train_config), "learned patterns")
+        _reusable(path, train_config, "learned patterns")
     for run in config.search:
-        _reusable(pattern_dir / f"{run.name}.npz", config_to_dict(config.search_config(run)), "searched patterns")
+        _reusable(pattern_dir / f"{run.name}.npz", config.search_config(run), "searched patterns")
 
 
 def learned_method(config: CompareConfig, num_patterns: int, seed: int, pattern_dir: Path, progress: bool,
@@ -464,13 +476,13 @@ def learned_method(config: CompareConfig, num_patterns: int, seed: int, pattern_
     TensorBoard logs of a new run go to ``logdir/<method id>`` when ``logdir`` is given.
     """
     method_id, path, train_config = _learned_output(config, num_patterns, seed, rerender, pattern_dir)
-    existing = _reusable(path, config_to_dict(train_config), "learned patterns")
+    existing = _reusable(path, train_config, "learned patterns")
     if existing is None:
         start = time.perf_counter()
         result = train_patterns(train_config, path, logdir=None if logdir is None else logdir / method_id, progress=progress,
                                 checkpoint_mode="resume_or_fresh")
         seconds = time.perf_counter() - start
-        write_json(path.with_name(path.stem + ".run.json"), {"seconds": seconds, "steps": train_config.steps})
+        write_json(path.with_name(path.stem + ".run.json"), {"seconds": seconds, "steps": train_config.steps, "scene_files": scene_files(train_config)})
         patterns, val_history = result.patterns, result.val_history
     else:
         seconds = _run_record(path).get("seconds")
@@ -487,10 +499,11 @@ def searched_method(config: CompareConfig, run: SearchRun, pattern_dir: Path, pr
     """Run (or reuse) one NLopt search (TensorBoard logs of a new run under ``logdir/<run name>``)."""
     search_config = config.search_config(run)
     path = pattern_dir / f"{run.name}.npz"
-    existing = _reusable(path, config_to_dict(search_config), "searched patterns")
+    existing = _reusable(path, search_config, "searched patterns")
     if existing is None:
         meta = run_search(search_config, path, logdir=None if logdir is None else logdir / run.name, progress=progress)
         patterns = load_patterns(path)[0]
+        write_json(path.with_name(path.stem + ".run.json"), {"seconds": meta["seconds"], "scene_files": scene_files(search_config)})
     else:
         meta, patterns = existing["meta"], existing["patterns"]
     info = {key: meta[key] for key in ("start_mae", "best_mae", "evaluations", "stop_reason", "sharpness")}
