@@ -143,6 +143,13 @@ def test_olat_reference_and_olat_patterns_take_the_same_capture_time(scenes):
     assert pattern_seconds <= reference_seconds <= 1.05 * pattern_seconds
 
 
+def test_report_tables_escape_a_pipe_in_a_name():
+    from train.report import _table
+
+    table = _table(["method", "M"], [["mine|v2", "2"]]).splitlines()
+    assert table[-1] == "| mine\\|v2 | 2 |" and all(line.replace("\\|", "").count("|") == 3 for line in table)
+
+
 def test_noise_verdict_says_on_which_side_of_one_the_ratio_is():
     from train.report import noise_verdict
 

@@ -54,6 +54,9 @@ from train.scene_sets import resolve_scenes
 DEFAULT_EXPOSURE_MS = 440.0
 """Exposure time per image (ms) when the rig's TOML gives no ``camera.exposure_ms``."""
 
+MAX_NOISE_SCALE = 1e6
+"""Largest noise scale compared: at 1e6 the reference rig's noise is ~5x full scale (pure noise);
+far beyond, the simulated variances overflow float32 and the captures are not finite."""
 SUMMARY_METRICS = ("mae", "median", "under_5", "under_10", "under_20", "under_30", "invalid_fraction", "exposure", "seconds")
 """Per-scene metrics averaged over the test scenes (each scene weighs the same)."""
 
@@ -202,8 +205,8 @@ class CompareConfig:
         for item in self.external:
             if not Path(item.path).is_file():
                 raise InputError(f"external pattern file {item.name!r} not found: {item.path}")
-        if not self.noise_scales or not all(0 <= s < math.inf for s in self.noise_scales):
-            raise InputError(f"noise_scales must list finite values >= 0, got {list(self.noise_scales)}")
+        if not self.noise_scales or not all(0 <= s <= MAX_NOISE_SCALE for s in self.noise_scales):
+            raise InputError(f"noise_scales must list values in [0, {MAX_NOISE_SCALE:g}], got {list(self.noise_scales)}")
         if self.default_noise not in self.noise_scales:
             raise InputError(f"default_noise {self.default_noise} must be one of noise_scales {list(self.noise_scales)}")
         for name in self.heuristics:

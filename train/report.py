@@ -447,8 +447,11 @@ def _fmt(value, digits: int = 2) -> str:
 
 
 def _table(header: list[str], lines: list[list[str]]) -> str:
-    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    out += ["| " + " | ".join(line) + " |" for line in lines]
+    def row(cells):  # a "|" inside a cell (a user's method name) would split it
+        return "| " + " | ".join(str(cell).replace("|", "\\|") for cell in cells) + " |"
+
+    out = [row(header), "|" + "|".join("---" for _ in header) + "|"]
+    out += [row(line) for line in lines]
     return "\n".join(out)
 
 
