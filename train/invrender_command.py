@@ -396,7 +396,6 @@ def _select(config, data: _Data, split, problem: FitProblem, initial, template, 
 
 def _write_outputs(out: Path, output: dict, config, result: InverseRenderResult, relit, data, split, pixels, selection, scene) -> None:
     transport = pixels.transport
-    height, width = scene.height, scene.width
     normal_image = transport.to_image(result.normal).numpy().astype(np.float32)
     save_npy(out / "normals.npy", normal_image)
     mask = scene.mask
