@@ -457,16 +457,21 @@ def _learned_output(config: CompareConfig, num_patterns: int, seed: int, rerende
     return method_id, pattern_dir / f"{method_id}.npz", config.train_config(num_patterns, seed, rerender)
 
 
+def _learning_runs(config: CompareConfig):
+    """Yield (M, seed, rerender) of every learning run, normal-only ones first."""
+    for count in config.learned_pattern_counts():
+        for seed in config.seeds_for(count):
+            yield count, seed, False
+    for count in config.rerender_counts:
+        yield count, config.seeds_for(count)[0], True
+
+
 def _check_reusable_runs(config: CompareConfig, pattern_dir: Path) -> None:
     """Refuse (``_reusable``) before anything is written: a folder whose learning or search outputs
     were made with another config would otherwise be refused only after the heuristic pattern
     files of the last finished run had been rewritten under it."""
-    for count in config.learned_pattern_counts():
-        for seed in config.seeds_for(count):
-            _, path, train_config = _learned_output(config, count, seed, False, pattern_dir)
-            _reusable(path, train_config, "learned patterns")
-    for count in config.rerender_counts:
-        _, path, train_config = _learned_output(config, count, config.seeds_for(count)[0], True, pattern_dir)
+    for count, seed, rerender in _learning_runs(config):
+        _, path, train_config = _learned_output(config, count, seed, rerender, pattern_dir)
         _reusable(path, train_config, "learned patterns")
     for run in config.search:
         _reusable(pattern_dir / f"{run.name}.npz", config.search_config(run), "searched patterns")
@@ -560,14 +565,9 @@ def collect_methods(config: CompareConfig, rig, pattern_dir: Path, progress: boo
             path = pattern_dir / f"heuristic_{name}_M{count}.npz"
             save_patterns(path, patterns, {"family": name, "preset": config.heuristic_preset, "made_by": "displex compare", "rig": rig.name})
             methods.append(Method(f"heuristic_{name}_M{count}", "heuristic", name, name, count, patterns, str(path)))
-    for count in config.learned_pattern_counts():
-        for seed in config.seeds_for(count):
-            start = time.perf_counter()
-            methods.append(learned_method(config, count, seed, pattern_dir, progress, logdir=logdir))
-            timings["learning_seconds"] += time.perf_counter() - start
-    for count in config.rerender_counts:
+    for count, seed, rerender in _learning_runs(config):
         start = time.perf_counter()
-        methods.append(learned_method(config, count, config.seeds_for(count)[0], pattern_dir, progress, rerender=True, logdir=logdir))
+        methods.append(learned_method(config, count, seed, pattern_dir, progress, rerender=rerender, logdir=logdir))
         timings["learning_seconds"] += time.perf_counter() - start
     for run in config.search:  # CompareConfig refuses runs whose M is not in pattern_counts
         start = time.perf_counter()
