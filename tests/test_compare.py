@@ -70,6 +70,13 @@ def test_shipped_configs_load():
         assert config.train_config(4, 0, rerender=True).rerender_weight > 0 == config.train_config(4, 0).rerender_weight
 
 
+def test_config_out_is_relative_to_the_repository_root_like_its_other_paths(scenes):
+    assert Path(tiny_config(scenes, out="runs/x").out) == REPO / "runs" / "x"
+    assert tiny_config(scenes, out="/tmp/absolute").out == "/tmp/absolute"
+    with pytest.raises(InputError, match="out"):
+        tiny_config(scenes, out=" ")
+
+
 def test_config_errors(scenes):
     with pytest.raises(InputError, match="unknown key"):
         tiny_config(scenes, colour="red")

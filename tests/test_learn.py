@@ -3,6 +3,8 @@ import json
 import math
 import shutil
 
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -43,6 +45,8 @@ def test_same_seed_same_patterns_and_resume_matches(tmp_path, scene_dirs, monkey
     def interrupted(logits, scenes, cfg, step, ps_config):
         if step == 3:
             raise KeyboardInterrupt
+        if step < 2:
+            time.sleep(0.3)  # the interrupted session's time up to its checkpoint (step 2) must count
         return original(logits, scenes, cfg, step, ps_config)
 
     monkeypatch.setattr(learn, "training_loss", interrupted)
@@ -52,6 +56,7 @@ def test_same_seed_same_patterns_and_resume_matches(tmp_path, scene_dirs, monkey
     monkeypatch.setattr(learn, "training_loss", original)
     resumed = train_patterns(config, tmp_path / "c.npz", progress=False)
     np.testing.assert_array_equal(first.patterns, resumed.patterns)
+    assert resumed.seconds >= 0.6
     assert first.patterns.min() >= 0 and first.patterns.max() <= 1 and first.patterns.shape == (3, 9, 16, 3)
     assert [step for step, _ in first.val_history] == [2, 4]
 

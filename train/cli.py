@@ -60,7 +60,8 @@ def _pattern_output(text: str) -> Path:
     return path
 
 
-RERUN_REUSES_RUNS = "rerun the same command to reuse its finished learning and search runs and resume the interrupted one"
+RERUN_REUSES_RUNS = ("rerun the same command to reuse its finished learning and search runs "
+                     "(an interrupted learning run resumes from its checkpoint, an interrupted search starts again)")
 """What an interrupted compare or demo tells the user."""
 
 
@@ -174,7 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     compare = commands.add_parser("compare", help="compare learned, searched, heuristic and external patterns on held-out scenes")
     compare.add_argument("--config", type=_path, required=True, help="TOML in configs/compare/ (or a preset name: default, demo)")
-    compare.add_argument("--out", type=_path, default=None, help="output folder (default: the config's `out`)")
+    compare.add_argument("--out", type=_path, default=None, help="output folder (default: the config's `out`, relative to the folder holding the config's configs/)")
     compare.set_defaults(handler=_compare, interrupted=RERUN_REUSES_RUNS)
 
     export = commands.add_parser("export", help="write display frames, manifest and contact sheet for the rig")

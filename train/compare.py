@@ -164,7 +164,8 @@ class CompareConfig:
     eval_seed: int = 0
     """Noise seed of the evaluation (``EvalSettings.seed``): every method sees the same draws."""
     out: str = "runs/compare"
-    """Default output folder (the command's --out replaces it)."""
+    """Default output folder, relative to the repository root like the config's other paths (the
+    command's --out, relative to the working directory, replaces it)."""
 
     def __post_init__(self):
         counts = list(self.pattern_counts) + list(self.learned_counts or ()) + list(self.rerender_counts)
@@ -296,7 +297,8 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
         values: the TOML tables: top-level fields, ``[learned]``, ``[learned_at.M]``,
             ``[learned_seeds_at]``, ``[[search]]`` and ``[[external]]``.
         root: folder that relative paths (external patterns, scenes, a rig given as a .toml
-            file) are relative to; None leaves them as given (relative to the working directory).
+            file, the output folder ``out``) are relative to; None leaves them as given (relative
+            to the working directory).
         source: name of the config for error messages.
     """
     values = dict(values)
@@ -350,6 +352,8 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
                 values[key] = [_resolve(path, root) for path in values[key]]
         if isinstance(values.get("rig"), str) and values["rig"].endswith(".toml"):  # a preset name stays a name
             values["rig"] = _resolve(values["rig"], root)
+        if isinstance(values.get("out"), str) and values["out"].strip():  # a blank one is refused as such
+            values["out"] = _resolve(values["out"], root)
     return config_from_dict(CompareConfig, values, source=source)
 
 
@@ -486,10 +490,9 @@ def learned_method(config: CompareConfig, num_patterns: int, seed: int, pattern_
     method_id, path, train_config = _learned_output(config, num_patterns, seed, rerender, pattern_dir)
     existing = _reusable(path, train_config, "learned patterns")
     if existing is None:
-        start = time.perf_counter()
         result = train_patterns(train_config, path, logdir=None if logdir is None else logdir / method_id, progress=progress,
                                 checkpoint_mode="resume_or_fresh")
-        seconds = time.perf_counter() - start
+        seconds = result.seconds  # includes the sessions of a resumed run
         write_json(path.with_name(path.stem + ".run.json"), {"seconds": seconds, "steps": train_config.steps, "scene_files": scene_files(train_config)})
         patterns, val_history = result.patterns, result.val_history
     else:

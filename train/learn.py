@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -267,11 +268,14 @@ def cosine_schedule(config: TrainConfig):
 
 @dataclass(frozen=True, eq=False)
 class TrainResult:
-    """Learned (M, R, C, 3) patterns, the validation MAE history [(step, degrees)], the final loss."""
+    """Learned (M, R, C, 3) patterns, the validation MAE history [(step, degrees)], the final loss,
+    and the wall seconds the run took, summed over the sessions of a resumed run (each
+    interrupted session counted up to its last checkpoint)."""
 
     patterns: np.ndarray
     val_history: list
     final_loss: float
+    seconds: float
 
 
 def checkpoint_path(out: Path) -> Path:
@@ -349,6 +353,7 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
     """
     if checkpoint_mode not in CHECKPOINT_MODES:
         raise InputError(f"checkpoint_mode must be one of {', '.join(CHECKPOINT_MODES)}, got {checkpoint_mode!r}")
+    began = time.perf_counter()
     out = Path(out)
     rig = load_rig(config.rig)
     train_scenes = training_samplers([scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed)], config)
@@ -360,7 +365,7 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
     optimiser = torch.optim.Adam([logits], lr=config.learning_rate)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimiser, cosine_schedule(config))
     resolved, identity = config_to_dict(config), checkpoint_identity(config)
-    start_step, val_history, loss_value = 0, [], float("nan")
+    start_step, val_history, loss_value, earlier_seconds = 0, [], float("nan"), 0.0
     checkpoint = checkpoint_path(out)
     state = None
     if checkpoint.exists() and checkpoint_mode != "fresh":
@@ -378,6 +383,7 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
         scheduler.load_state_dict(state["scheduler"])
         start_step, val_history = state["step"], state["val_history"]
         loss_value = state.get("loss", float("nan"))
+        earlier_seconds = state.get("seconds", 0.0)
     writer = summary_writer(logdir)
     ps_config = UnrolledPSConfig()
     eval_settings = EvalSettings(noise_scale=config.noise_scale, seed=config.seed + 7919)
@@ -402,7 +408,8 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
             val_history.append((done, _validate(logits, val_scenes, eval_settings, writer, done)))
         bar.set_postfix(loss=f"{loss_value:.4f}", **({"val_mae": f"{val_history[-1][1]:.2f}"} if val_history else {}))
         if done % config.checkpoint_every == 0 or done == config.steps:
-            state = {"config": identity, "logits": logits.detach().clone(), "optimiser": optimiser.state_dict(), "scheduler": scheduler.state_dict(), "step": done, "val_history": val_history, "loss": loss_value}
+            state = {"config": identity, "logits": logits.detach().clone(), "optimiser": optimiser.state_dict(), "scheduler": scheduler.state_dict(), "step": done, "val_history": val_history, "loss": loss_value,
+                     "seconds": earlier_seconds + time.perf_counter() - began}
             with atomic_path(checkpoint, suffix=".pt", sync=True) as tmp:
                 torch.save(state, tmp)
     if val_scenes and not val_history:  # no step ran (steps = 0): validate the start patterns
@@ -421,7 +428,7 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
     }
     save_patterns(out, learned, meta)
     write_json(config_record_path(out), resolved)
-    return TrainResult(learned, val_history, loss_value)
+    return TrainResult(learned, val_history, loss_value, earlier_seconds + time.perf_counter() - began)
 
 
 def summary_writer(logdir: Path | None):
