@@ -306,7 +306,13 @@ def concatenate_results(results: list[PSResult], dtype) -> PSResult:
     )
 
 
-def _check_inputs(captures, emission, points, lights, config, chunk_size):
+def check_solver_inputs(captures, emission, points, lights, config, chunk_size, config_type, min_patterns: int = 1,
+                        solver: str = "photometric stereo") -> None:
+    """The input checks the solvers share (``solve_ps``, ``reconstruct.woodham.solve_woodham``):
+    shapes (captures (M, N, 3), emission (M, K, 3) >= 0, points (N, 3), lights (K, 3)), finite
+    values, floating-point tensors, matching sizes, at least ``min_patterns`` captures and one
+    light, a ``config_type`` config and a positive ``chunk_size``. Each failure is one
+    ``InputError`` that names the sizes involved."""
     check_array("captures", captures, ("M", "N", 3))
     check_array("emission", emission, ("M", "K", 3), value_range=(0.0, math.inf))
     check_array("points", points, ("N", 3))
@@ -315,18 +321,24 @@ def _check_inputs(captures, emission, points, lights, config, chunk_size):
         raise InputError("captures and emission must be torch tensors")
     if not (captures.is_floating_point() and emission.is_floating_point()):
         raise InputError("captures and emission must be floating-point tensors")
-    if captures.shape[0] < 1 or lights.shape[0] < 1:
-        raise InputError(f"need at least one pattern and one light, got M = {captures.shape[0]}, K = {lights.shape[0]}")
+    if captures.shape[0] < min_patterns:
+        raise InputError(f"{solver} needs at least {min_patterns} capture{'s' if min_patterns > 1 else ''}, got {captures.shape[0]}")
+    if lights.shape[0] < 1:
+        raise InputError(f"{solver} needs at least one light, got K = 0")
     if captures.shape[0] != emission.shape[0]:
         raise InputError(f"captures have {captures.shape[0]} patterns but emission has {emission.shape[0]}")
     if emission.shape[1] != lights.shape[0]:
         raise InputError(f"emission drives {emission.shape[1]} superpixels but there are {lights.shape[0]} lights")
     if captures.shape[1] != points.shape[0]:
         raise InputError(f"captures have {captures.shape[1]} pixels but points has {points.shape[0]}")
-    if not isinstance(config, PSConfig):
-        raise InputError(f"config must be a PSConfig, got {type(config).__name__}")
+    if not isinstance(config, config_type):
+        raise InputError(f"config must be a {config_type.__name__}, got {type(config).__name__}")
     if chunk_size < 1:
         raise InputError(f"chunk_size must be positive, got {chunk_size}")
+
+
+def _check_inputs(captures, emission, points, lights, config, chunk_size):
+    check_solver_inputs(captures, emission, points, lights, config, chunk_size, PSConfig)
 
 
 def solve_pixels(solve_block, captures, emission, points, pixel_index, lights, config, chunk_size) -> PSResult:

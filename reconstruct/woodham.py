@@ -20,7 +20,6 @@ without gradients.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -34,6 +33,7 @@ from reconstruct.photometric_stereo import (
     check_shared_settings,
     check_image_inputs,
     check_masked_inputs,
+    check_solver_inputs,
     concatenate_results,
     finalise,
     image_pixels,
@@ -182,27 +182,7 @@ def _olat_emission(emission: torch.Tensor):
 
 
 def _check_inputs(captures, emission, points, lights, config, chunk_size):
-    check_array("captures", captures, ("M", "N", 3))
-    check_array("emission", emission, ("M", "K", 3), value_range=(0.0, math.inf))
-    check_array("points", points, ("N", 3))
-    check_array("lights", lights, ("K", 3))
-    if not (isinstance(captures, torch.Tensor) and isinstance(emission, torch.Tensor)):
-        raise InputError("captures and emission must be torch tensors")
-    if not (captures.is_floating_point() and emission.is_floating_point()):
-        raise InputError("captures and emission must be floating-point tensors")
-    if captures.shape[0] != emission.shape[0] or emission.shape[1] != lights.shape[0] or captures.shape[1] != points.shape[0]:
-        raise InputError(
-            f"inconsistent sizes: captures {tuple(captures.shape)}, emission {tuple(emission.shape)}, "
-            f"points {tuple(points.shape)}, lights {tuple(lights.shape)}"
-        )
-    if captures.shape[0] < 3:
-        raise InputError(f"Woodham photometric stereo needs at least 3 captures, got {captures.shape[0]}")
-    if lights.shape[0] < 1:
-        raise InputError("Woodham photometric stereo needs at least one light, got K = 0")
-    if not isinstance(config, WoodhamConfig):
-        raise InputError(f"config must be a WoodhamConfig, got {type(config).__name__}")
-    if chunk_size < 1:
-        raise InputError(f"chunk_size must be positive, got {chunk_size}")
+    check_solver_inputs(captures, emission, points, lights, config, chunk_size, WoodhamConfig, min_patterns=3, solver="Woodham photometric stereo")
 
 
 @torch.no_grad()
