@@ -1,8 +1,10 @@
 """Atomic file writes: write to a temporary file in the target folder, then rename over the target."""
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -87,6 +89,36 @@ def atomic_path(path: str | Path, suffix: str = "", sync: bool = False):
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+@contextmanager
+def staged_files(folder: str | Path):
+    """Yield a temporary folder inside ``folder`` (created if needed) for the files of one command.
+
+    When the block ends normally, every file written into it replaces its namesake in ``folder``
+    (one rename each); when it raises, they are discarded (and ``folder`` too if the block created
+    it and it is empty). A command that writes many files during long work thus leaves all of them
+    or none: never new files of some scenes beside an earlier run's results. Callers check the
+    final paths first (``refuse_overwriting``): a rename cannot replace a folder.
+    """
+    folder = Path(folder)
+    created = not folder.exists()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=".staging.", dir=folder))
+    except OSError as err:
+        raise InputError(f"cannot write into {folder}: {err.strerror or err}") from None
+    try:
+        yield staging
+        for item in sorted(staging.iterdir()):
+            os.replace(item, folder / item.name)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        if created:
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only if nothing else was put there meanwhile
+        raise
+    shutil.rmtree(staging, ignore_errors=True)
 
 
 def write_bytes(path: str | Path, data: bytes) -> None:

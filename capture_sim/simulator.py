@@ -159,6 +159,14 @@ def auto_exposure(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERC
     return target / level
 
 
+def check_exposure_range(exposure: float, *exposed: torch.Tensor) -> None:
+    """Raise ``InputError`` if an exposure pushed any of the ``exposed`` tensors (exposed
+    radiance or emission, any shape) past their dtype's range. There the radiance is inf, and
+    inf * 0 (an unlit pixel) NaN: without this check the solver would report NaN captures."""
+    if not all(bool(torch.isfinite(values.detach()).all()) for values in exposed):
+        raise InputError(f"exposure {exposure:g} is too large: the exposed radiance overflows {exposed[0].dtype}; use a smaller value or 'auto'")
+
+
 class _SaturatingClip(torch.autograd.Function):
     """Exact clip to [0, 1] forward; slope 1 inside and a decaying tail outside backward."""
 
@@ -290,9 +298,7 @@ def simulate(
     if not exposure > 0 or not np.isfinite(exposure):
         raise InputError(f"exposure must be a positive number or 'auto', got {exposure}")
     emission, exposed = exposure * emitted, exposure * radiance
-    if not bool(torch.isfinite(emission.detach()).all() and torch.isfinite(exposed.detach()).all()):
-        # Past the dtype's range the exposed radiance is inf, and inf * 0 (unlit pixels) is NaN.
-        raise InputError(f"exposure {exposure:g} is too large: the exposed radiance overflows {radiance.dtype}; use a smaller value or 'auto'")
+    check_exposure_range(exposure, emission, exposed)
     noise_model = rig.noise if noise == "rig" else noise
     bits = rig.bit_depth if bit_depth == "rig" else bit_depth
     captures = sensor(exposed, noise_model, bits, generator)

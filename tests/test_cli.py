@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from capture_sim.errors import MAX_THREADS
+from capture_sim.errors import MAX_THREADS, InputError
 from capture_sim.rig import load_rig
 from capture_sim.scene import save_scene
 from capture_sim.synth import synthesize_scene
@@ -133,6 +133,7 @@ def test_scene_black_inside_its_mask_is_reported(tmp_path, scene_file, capsys):
     commands = {
         "evaluate": ["evaluate", "--patterns", "olat", "--scenes"],
         "train": ["train", "--steps", "1", "--fresh", "--out", str(tmp_path / "p.npz"), "--scenes"],
+        "simulate": ["simulate", "--patterns", str(_pattern_file(tmp_path, "random", load_rig())[0]), "--out", str(tmp_path / "sim"), "--scene"],
     }
     for name, command in commands.items():
         for scene, warned in ((black, True), (scene_file, False)):
@@ -174,6 +175,7 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         (simulate + [str(tmp_path / "bool_depth.npz")], "depth must hold floating-point values"),
         (simulate + [str(tmp_path / "mm_depth.npz")], "depth must hold floating-point values"),
         (simulate + [str(scene_file), "--exposure", "1e300"], "exposure 1e+300 is too large"),
+        (["evaluate", "--patterns", "olat", "--scenes", str(scene_file), "--exposure", "1e300"], "exposure 1e+300 is too large"),
         (simulate + [str(scene_file), "--rig", str(tmp_path / "gamma.toml")], "display gamma must lie in"),
         (simulate + [str(scene_file), "--rig", str(tmp_path / "rows.toml")], "panel grid must be whole numbers"),
         (["train", "--config", str(tmp_path / "inf_noise.toml"), "--out", str(tmp_path / "t.npz")], "noise_scale must be a finite number"),
@@ -184,6 +186,11 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         (["evaluate", "--patterns", "olat", "--scenes", ""], "empty path"),
         # Outputs that would destroy an input.
         (["evaluate", "--patterns", str(good), "--scenes", str(scene_file), "--json", str(good)], "would destroy"),
+        # evaluate --out: its maps and results must not replace the pattern file or --json (or the reverse).
+        (["evaluate", "--patterns", str(tmp_path / "eo" / f"{scene_file.stem}_normal.npy"), "--scenes", str(scene_file), "--out",
+          str(tmp_path / "eo")], "also the pattern file"),
+        (["evaluate", "--patterns", str(good), "--scenes", str(scene_file), "--out", str(tmp_path / "e2"), "--json",
+          str(tmp_path / "e2" / "summary.png")], "also the --json"),
         (["train", "--init", str(good_npz), "--out", str(good_npz)], "would destroy"),
         # A scene inside a --scenes or --val-scenes folder is an input too.
         (["train", "--steps", "1", "--scenes", str(tmp_path / "twin"), "--out", str(tmp_path / "twin" / scene_file.name)], "would destroy"),
@@ -225,6 +232,8 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
                   "contact_sheet.png: it exists and is not a regular file"))
     (tmp_path / "sim" / "contact_sheet.png").mkdir(parents=True)
     save_patterns(good_npz, np.load(good))
+    (tmp_path / "eo").mkdir()
+    (tmp_path / "eo" / f"{scene_file.stem}_normal.npy").write_bytes(good.read_bytes())
     (tmp_path / "folder.npz").mkdir()
     (tmp_path / "twin").mkdir()
     (tmp_path / "twin" / scene_file.name).write_bytes(scene_file.read_bytes())
@@ -235,6 +244,33 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         assert err.startswith("displex: error:") and message in err, (argv, err)
     assert not (tmp_path / "folder.ckpt.pt").exists()  # refused before learning wrote a checkpoint
     assert sorted(path.name for path in (tmp_path / "sim").iterdir()) == ["contact_sheet.png"]
+
+
+def test_evaluate_out_is_written_all_or_nothing(tmp_path, scene_file, capsys, monkeypatch):
+    """A failure after the first scene (here the second scene's) leaves --out as the last finished
+    run left it: no new maps of some scenes beside an older results.json, no staging folder."""
+    import train.evaluate_command as evaluate_command
+
+    out, fresh = tmp_path / "e", tmp_path / "fresh"
+    assert run(["evaluate", "--patterns", "olat", "--scenes", str(scene_file), "--out", str(out)]) == 0
+    before = {path.name: path.read_bytes() for path in out.iterdir()}
+    other = tmp_path / "b" / "other.npz"
+    other.parent.mkdir()
+    other.write_bytes(scene_file.read_bytes())
+    original = evaluate_command.evaluate_scene
+
+    def second_fails(pixels, patterns, settings, index):
+        if index == 1:
+            raise InputError("the second scene is bad")
+        return original(pixels, patterns, settings, index)
+
+    monkeypatch.setattr(evaluate_command, "evaluate_scene", second_fails)
+    for folder in (out, fresh):
+        capsys.readouterr()
+        assert run(["evaluate", "--patterns", "olat", "--scenes", str(scene_file), str(other), "--out", str(folder)]) == 2
+        assert capsys.readouterr().err.strip().splitlines()[-1] == "displex: error: the second scene is bad"
+    assert {path.name: path.read_bytes() for path in out.iterdir()} == before
+    assert not fresh.exists()
 
 
 def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeypatch):
@@ -399,7 +435,6 @@ def test_review_fixes_rig_values_stale_captures_and_logdir(tmp_path, scene_file,
     unusable --logdir is one error line; non-finite config values are written as strings."""
     import math
 
-    from capture_sim.errors import InputError
     from capture_sim.rig import RIG_DIR
     from train.config_io import config_to_dict
     from train.learn import TrainConfig

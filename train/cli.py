@@ -231,8 +231,6 @@ def _evaluate(args) -> None:
 
     if args.out is not None:
         check_output_folder(args.out, "evaluate")
-    refuse_overwriting([("--json", args.json)], [("--patterns file", None if args.patterns == "olat" else args.patterns),
-                                                 *_scene_files(args.scenes)])
     config = EvaluateConfig(tuple(args.scenes), args.patterns, args.method, args.noise, args.exposure, args.rig, args.seed, args.json, args.out)
     document = run_evaluate(config)
     for row in document["scenes"]:

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from capture_sim.errors import InputError, check_seed
-from capture_sim.simulator import auto_exposure, sensor
+from capture_sim.simulator import auto_exposure, check_exposure_range, sensor
 from reconstruct.metrics import angular_error_deg, normal_metrics
 from reconstruct.photometric_stereo import PSConfig, PSResult, solve_ps
 from reconstruct.woodham import solve_woodham, solve_woodham_olat
@@ -69,9 +69,11 @@ def olat_captures(pixels: ScenePixels, settings: EvalSettings, generator: torch.
         radiance = radiance[:, columns]
     rig = pixels.rig
     noisy = settings.noise_scale > 0
-    captures = sensor(exposure * radiance, rig.noise.scaled(settings.noise_scale) if noisy else None, rig.bit_depth if noisy else None, generator)
-    eye = torch.eye(pixels.transport.num_lights, dtype=captures.dtype)
-    return captures, exposure * eye[:, :, None].expand(-1, -1, 3), exposure
+    exposed = exposure * radiance
+    emission = exposure * torch.eye(pixels.transport.num_lights, dtype=radiance.dtype)[:, :, None].expand(-1, -1, 3)
+    check_exposure_range(exposure, exposed, emission)
+    captures = sensor(exposed, rig.noise.scaled(settings.noise_scale) if noisy else None, rig.bit_depth if noisy else None, generator)
+    return captures, emission, exposure
 
 
 def evaluate_scene(pixels: ScenePixels, patterns, settings: EvalSettings, scene_index: int = 0, columns: torch.Tensor | None = None) -> SceneEvaluation:

@@ -1,6 +1,7 @@
 """`displex evaluate`: reconstruct scenes under a pattern set and report normal errors."""
 from __future__ import annotations
 
+import contextlib
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -9,7 +10,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import save_npy, write_json
+from capture_sim.atomic import refuse_overwriting, save_npy, staged_files, write_json
 from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import DEFAULT_RIG, load_rig
 from patterns.io import check_patterns_match_rig, load_patterns
@@ -57,20 +58,51 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
         patterns = torch.as_tensor(values)
     settings = EvalSettings(method=config.method, noise_scale=0.0 if config.noise == "off" else 1.0, exposure=parse_exposure(str(config.exposure), rig), seed=config.seed)
     scenes = resolve_scenes(config.scenes, "test", rig)
+    files = [Path(scene.meta.get("file", scene.name)) for scene in scenes]
     if config.out is not None:
-        _refuse_clashing_outputs([Path(scene.meta.get("file", scene.name)) for scene in scenes])
+        _refuse_clashing_outputs(files)
+    # Every output is checked before the work: none may replace an input or another output.
+    json_path = config.json
+    if json_path is not None and config.out is not None and Path(json_path).resolve() == (Path(config.out) / "results.json").resolve():
+        json_path = None  # the same document as --out's results.json
+    inputs = [("scene file", file) for file in files] + [("pattern file", None if config.patterns == "olat" else config.patterns)]
+    refuse_overwriting([("--json", json_path), *_out_files(config.out, files)], inputs)
+    with contextlib.ExitStack() as stack:
+        # Files for --out are staged and land together at the end: a failure part-way (a bad
+        # later scene, an unwritable --json) leaves no new maps beside an earlier run's results.
+        staging = None if config.out is None else stack.enter_context(staged_files(config.out))
+        document = _evaluate_scenes(config, scenes, files, rig, patterns, settings, staging, progress)
+        if json_path is not None:
+            write_json(json_path, document)
+    return document
+
+
+def _out_files(out: Path | None, files: list[Path]) -> list[tuple[str, Path]]:
+    """(what, path) of every file ``run_evaluate`` writes into ``out`` (none without one)."""
+    if out is None:
+        return []
+    names = ["results.json", "summary.png"] + [f"{file.stem}{ending}" for file in files for ending in SCENE_OUTPUT_ENDINGS]
+    return [("--out file", Path(out) / name) for name in names]
+
+
+SCENE_OUTPUT_ENDINGS = ("_normal.npy", "_valid.npy", "_residual.npy", "_normals.png")
+"""The per-scene files of ``--out``, after the scene file's stem."""
+
+
+def _evaluate_scenes(config: EvaluateConfig, scenes, files, rig, patterns, settings: EvalSettings, out: Path | None, progress: bool) -> dict:
+    """Evaluate every scene; with ``out``, write its maps, ``results.json`` and ``summary.png``
+    there. Returns the JSON document."""
     rows, panels = [], []
-    for index, scene in enumerate(tqdm(scenes, desc="evaluating", unit="scene", disable=not progress)):
+    for index, (scene, file) in enumerate(zip(tqdm(scenes, desc="evaluating", unit="scene", disable=not progress), files)):
         pixels = scene_pixels(scene, rig, require_normals=True)
         evaluation = evaluate_scene(pixels, patterns, settings, index)
         rows.append(evaluation.metrics)
         if evaluation.metrics["invalid_fraction"] >= 1.0:
             # The MAE of such a scene measures the default normal, not a reconstruction.
             warnings.warn(f"every pixel of {evaluation.metrics['name']} is flagged invalid (too few, identical, dark or "
-                          "saturated captures): its MAE says nothing about the patterns", DisplexWarning, stacklevel=2)
-        if config.out is not None:
-            panels.append(_write_scene_outputs(Path(config.out), Path(scene.meta.get("file", scene.name)).stem, pixels, evaluation,
-                                              settings.ps.residual_threshold))
+                          "saturated captures): its MAE says nothing about the patterns", DisplexWarning, stacklevel=3)
+        if out is not None:
+            panels.append(_write_scene_outputs(out, file.stem, pixels, evaluation, settings.ps.residual_threshold))
     document = {
         "patterns": str(config.patterns),
         "method": config.method,
@@ -78,15 +110,13 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
         "rig": rig.name,
         "exposure": str(config.exposure),
         "seed": config.seed,
-        "scene_files": [str(scene.meta.get("file", scene.name)) for scene in scenes],
+        "scene_files": [str(file) for file in files],
         "scenes": rows,
         "mean_mae": float(np.mean([row["mae"] for row in rows])),
     }
-    if config.json is not None:
-        write_json(config.json, document)
-    if config.out is not None:
-        write_json(Path(config.out) / "results.json", document)
-        _summary_figure(Path(config.out) / "summary.png", panels, document)
+    if out is not None:
+        write_json(out / "results.json", document)
+        _summary_figure(out / "summary.png", panels, document)
     return document
 
 

@@ -14,3 +14,7 @@ def entrypoint() -> None:
         print("\ndisplex: interrupted", file=sys.stderr)
         sys.exit(130)
     sys.exit(run())
+
+
+if __name__ == "__main__":  # python -m train.launch, as the console script
+    entrypoint()

@@ -47,22 +47,27 @@ class ScenePixels:
         return self.rig.lights()
 
 
+def warn_if_black_inside_mask(scene: Scene) -> None:
+    """Warn (``DisplexWarning``) if the scene's OLAT stack is zero on every masked pixel: usable but
+    probably not meant (a wrong mask, a failed capture, a purely specular scene stripped of its
+    specular stack), as its captures hold nothing but noise. Stops at the first lit light."""
+    if not any(np.any(image[scene.mask]) for image in scene.olat):
+        warnings.warn(f"scene {scene.name} is black inside its mask (its OLAT stack is zero there): its captures hold "
+                      "nothing but noise, so its errors say nothing about the patterns", DisplexWarning, stacklevel=3)
+
+
 def scene_pixels(scene: Scene, rig: Rig, require_normals: bool = False) -> ScenePixels:
     """Prepare one scene; ``require_normals`` raises ``InputError`` for scenes without ground truth.
 
-    A scene whose OLAT stack is zero on every masked pixel is usable but probably not meant (a
-    wrong mask, a failed capture, a purely specular scene stripped of its specular stack): it is
-    reported with a ``DisplexWarning``: its captures hold nothing but noise.
+    A scene black inside its mask is reported (``warn_if_black_inside_mask``).
     """
     if require_normals and scene.normal is None:
         raise InputError(f"scene {scene.name} has no ground-truth normals, which this command needs")
     if not scene.mask.any():
         raise InputError(f"scene {scene.name} has an empty mask")
     scene_rig = rig_for_scene(rig, scene)
+    warn_if_black_inside_mask(scene)
     transport = light_transport(scene.olat, scene.mask)
-    if not bool(transport.matrix.any()):
-        warnings.warn(f"scene {scene.name} is black inside its mask (its OLAT stack is zero there): its captures hold "
-                      "nothing but noise, so its errors say nothing about the patterns", DisplexWarning, stacklevel=2)
     flat_mask = torch.as_tensor(scene.mask.reshape(-1))
     points = scene.points(scene_rig.working_distance).reshape(-1, 3)[flat_mask]
     normal = None if scene.normal is None else torch.as_tensor(scene.normal, dtype=torch.float32).reshape(-1, 3)[flat_mask]

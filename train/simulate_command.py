@@ -18,6 +18,7 @@ from capture_sim.scene import Scene, load_scene, rig_for_scene
 from capture_sim.simulator import auto_exposure, display_emission, light_transport, noise_free_radiance, simulate
 from patterns.io import check_patterns_match_rig, load_patterns
 from train.figures import for_display, image_grid, save_figure
+from train.scene_pixels import warn_if_black_inside_mask
 
 
 SHEET_CAPTURES = 48
@@ -81,6 +82,7 @@ def run_simulate(config: SimulateConfig) -> dict:
     check_output_folder(config.out, "simulate")
     scene = load_scene(config.scene)
     rig = rig_for_scene(load_rig(config.rig), scene)
+    warn_if_black_inside_mask(scene)
     pattern_values, pattern_meta = load_patterns(config.patterns)
     check_patterns_match_rig(pattern_values, rig.rows, rig.cols)
     if config.noise not in ("off", "default"):
