@@ -206,6 +206,12 @@ def scene_paths(paths) -> list[Path]:
     return found
 
 
+def file_fingerprints(paths) -> list[list]:
+    """[absolute path, size in bytes, modification time in ns] of each file: what a run records of
+    the files it was made from, so that a file rewritten or replaced since is noticed."""
+    return [[str(Path(path).resolve()), Path(path).stat().st_size, Path(path).stat().st_mtime_ns] for path in paths]
+
+
 LIGHT_MISMATCH_M = 0.01
 """Metres: scene and rig light positions further apart than this are reported (a scene from
 another rig, or a stale calibration); closer ones are calibration rounding."""

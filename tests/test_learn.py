@@ -129,6 +129,21 @@ def test_damaged_or_foreign_checkpoints_are_refused(tmp_path, scene_dirs):
         train_patterns(config, tmp_path / "a.npz", progress=False, checkpoint_mode="maybe")
 
 
+def test_checkpoint_of_scene_files_rewritten_since_is_refused(tmp_path, scene_dirs):
+    """A finished or interrupted run made from scene files that were rewritten since neither resumes
+    on them nor reports its old validation as theirs."""
+    copies = [tmp_path / folder.name for folder in scene_dirs]
+    for folder, copy in zip(scene_dirs, copies):
+        shutil.copytree(folder, copy)
+    config = _config(copies, steps=2, val_every=0)
+    train_patterns(config, tmp_path / "a.npz", progress=False)
+    train_patterns(config, tmp_path / "a.npz", progress=False)  # unchanged files: the finished run is reused
+    rewritten = sorted(copies[1].glob("*.npz"))[0]
+    rewritten.write_bytes(rewritten.read_bytes())  # same content, written again: its files may differ
+    with pytest.raises(InputError, match="made from scene or pattern files that were rewritten or replaced since; pass --fresh"):
+        train_patterns(config, tmp_path / "a.npz", progress=False)
+
+
 def test_checkpoint_resumes_with_scenes_named_relative_or_absolute(tmp_path, scene_dirs, monkeypatch):
     monkeypatch.chdir(scene_dirs[0].parent)
     absolute = _config(scene_dirs, steps=2, val_every=0)
@@ -143,7 +158,7 @@ def test_checkpoint_resumes_with_scenes_named_relative_or_absolute(tmp_path, sce
     monkeypatch.chdir(tmp_path)
     for folder in scene_dirs:
         shutil.copytree(folder, tmp_path / folder.name)
-    with pytest.raises(InputError, match=r"another config \(scenes, val_scenes differ\)"):
+    with pytest.raises(InputError, match=r"another config \(input_files, scenes, val_scenes differ\)"):
         train_patterns(relative, tmp_path / "a.npz", progress=False)
 
 

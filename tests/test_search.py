@@ -82,6 +82,26 @@ def test_roundoff_exception_returns_best_point(algorithm):
     assert np.allclose(found.best_x, evaluations[int(np.argmin(values))])
 
 
+def test_an_nlopt_failure_returns_the_best_point():
+    """A gradient that disagrees with the value makes LD_LBFGS's line search fail (nlopt 2.11 raises
+    nlopt.runtime_error, no longer a RuntimeError): the search still ends with the best point seen."""
+    def misleading(x, need_gradient):
+        value, gradient = quadratic(x, need_gradient)
+        return value, (None if gradient is None else -gradient)
+
+    found = minimise(misleading, np.zeros(3), LOW, HIGH, "LD_LBFGS", maxeval=50)
+    assert found.stop_reason.startswith("stopped:") and 1 < len(found.history) < 50
+    assert found.best_value == min(value for _, value in found.history)
+
+
+def test_points_asked_again_cost_no_evaluation():
+    """Algorithms that return to a point (LN_SBPLX to its start) are answered from memory: the
+    trace has one row per distinct evaluation."""
+    found = minimise(quadratic, np.zeros(3), LOW, HIGH, "LN_SBPLX", maxeval=40)
+    points = [x.tobytes() for x, _ in found.history]
+    assert len(points) == len(set(points)) > 10  # with one remembered point, the start came twice
+
+
 def test_maxtime_stops_the_search():
     def slow(x, need_gradient):
         time.sleep(0.02)
@@ -239,6 +259,19 @@ def test_too_many_parameters_for_a_quadratic_algorithm_fail_before_the_scenes(mo
     # A gradient algorithm takes the same search on to the scenes.
     with pytest.raises(AssertionError, match="prepare_scenes"):
         run_search(SearchConfig(family="tri_random", num_patterns=8, algorithm="LD_MMA", maxeval=3), tmp_path / "big.npz", progress=False)
+
+
+def test_a_refused_search_leaves_an_earlier_partial_trace(scene_dir, tmp_path):
+    out = tmp_path / "best.npz"
+    partial = partial_trace_path(out)
+    partial.write_text("index,lo,mae_deg,best_mae_deg\n0,0.1,9.0,9.0\n")
+    no_normals = tmp_path / "bare"
+    no_normals.mkdir()
+    scene = synthesize_scene("sphere", "lambertian", load_rig(), SIZE[0], SIZE[1], seed=0)
+    save_scene(dataclasses.replace(scene, normal=None), no_normals / "sphere.npz")
+    with pytest.raises(InputError, match="no ground-truth normals"):
+        run_search(SearchConfig(maxeval=2, scenes=(str(no_normals),), scene_size=SIZE), out, progress=False)
+    assert partial.read_text().startswith("index,lo")
 
 
 def test_interrupted_search_leaves_a_partial_trace_and_the_finished_run_untouched(scene_dir, tmp_path, monkeypatch):

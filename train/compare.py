@@ -37,7 +37,7 @@ from capture_sim.atomic import write_json
 from capture_sim.display import display_emission
 from capture_sim.errors import DisplexWarning, InputError, check_seed
 from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, Rig, load_rig
-from capture_sim.scene import scene_paths
+from capture_sim.scene import file_fingerprints, scene_paths
 from capture_sim.synth import GENERATOR
 from capture_sim.toml_io import load_toml
 from patterns.families import FAMILIES, PRESETS, get_family, make_patterns
@@ -446,8 +446,7 @@ def _reusable(path: Path, run_config, what: str) -> dict | None:
 def scene_files(run_config) -> list[list]:
     """[path, size in bytes, modification time in ns] of every scene file a learning or search
     config reads (none for the default synthetic scenes): what a reused run must have been made from."""
-    names = (*run_config.scenes, *getattr(run_config, "val_scenes", ()))
-    return [[str(path.resolve()), path.stat().st_size, path.stat().st_mtime_ns] for path in scene_paths(names)]
+    return file_fingerprints(scene_paths((*run_config.scenes, *getattr(run_config, "val_scenes", ()))))
 
 
 def _run_record(path: Path) -> dict:

@@ -26,6 +26,7 @@ from tqdm import tqdm
 from capture_sim.atomic import atomic_path, write_json
 from capture_sim.errors import InputError, check_seed
 from capture_sim.rig import DEFAULT_RIG, load_rig
+from capture_sim.scene import file_fingerprints, scene_paths
 from patterns.families import FAMILIES, get_family, make_patterns
 from patterns.io import check_patterns_match_rig, load_patterns, save_patterns
 from patterns.parameterization import keep_movable, logits_to_patterns, patterns_to_logits
@@ -299,18 +300,23 @@ def checkpoint_identity(config: TrainConfig) -> dict:
     """The config as a checkpoint records and compares it: ``config_to_dict`` with the scene,
     pattern and rig files as absolute paths, so that a run resumes whether its files are named
     relative to the working directory or absolutely, and a relative name that means other files
-    from another directory does not resume. (The config record beside the patterns keeps the
-    names as given.)"""
+    from another directory does not resume (the config record beside the patterns keeps the
+    names as given); plus ``input_files``, the ``file_fingerprints`` of the scene files and an
+    init pattern file, so that a run does not resume on, or report validation of, files rewritten
+    since. The files must exist."""
     def absolute(name: str) -> str:
         return str(Path(name).resolve())
 
-    return config_to_dict(dataclasses.replace(
+    identity = config_to_dict(dataclasses.replace(
         config,
         scenes=tuple(absolute(name) for name in config.scenes),
         val_scenes=tuple(absolute(name) for name in config.val_scenes),
         init=absolute(config.init) if names_pattern_file(config.init) else config.init,
         rig=absolute(config.rig) if Path(config.rig).suffix == ".toml" else config.rig,
     ))
+    init_file = [config.init] if names_pattern_file(config.init) else []
+    identity["input_files"] = file_fingerprints([*scene_paths((*config.scenes, *config.val_scenes)), *init_file])
+    return identity
 
 
 _AFRESH = "pass --fresh (or delete it) to start afresh"
@@ -334,6 +340,8 @@ def load_checkpoint(checkpoint: Path, resolved: dict) -> dict:
         raise InputError(f"checkpoint {checkpoint} is not a displex training checkpoint; {_AFRESH}")
     if state["config"] != resolved:
         changed = sorted(key for key in resolved if state["config"].get(key) != resolved[key]) if isinstance(state["config"], dict) else []
+        if changed == ["input_files"]:
+            raise InputError(f"checkpoint {checkpoint} was made from scene or pattern files that were rewritten or replaced since; {_AFRESH}")
         raise InputError(f"checkpoint {checkpoint} was written with another config ({', '.join(changed) or 'other keys'} differ); {_AFRESH}")
     return state
 

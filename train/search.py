@@ -9,7 +9,11 @@ fixed noise draw (generator seeded with ``config.seed * 1000 + scene index``) fo
 evaluation, so NLopt compares patterns, not noise draws. Gradient-based algorithms (LD_*) get the
 gradient of exactly this value by autograd (``solve_ps`` has exact implicit gradients); the angle
 is acos of the clamped cosine, as in training's uncapped 'angular' loss (``train.learn.normal_loss``),
-so the value is a differentiable surrogate of the MAE that differs from it by < 0.1 degree.
+so the value differs from the MAE by < 0.1 degree. It is smooth only piecewise: a pixel whose
+validity flag flips (its condition number crossing the threshold, say) switches between its
+estimate and the placeholder normal, as in the MAE, a jump of up to a few tenths of a degree on
+small scene sets. Derivative-free algorithms (the default LN_BOBYQA) cope; LD_* ones can stall or
+fail on such a jump, which ends the search with the best point seen.
 
 Search generates patterns at a low edge sharpness (4 per cell instead of the families' 40): at 40,
 split and block edges are binary and their positions get no gradient, and a derivative-free search
@@ -157,6 +161,11 @@ class Minimum:
     seconds: float
 
 
+CACHED_POINTS = 64
+"""Evaluations ``_Tracker`` remembers: algorithms that ask for a point again (LN_SBPLX returns to
+its start) are answered without spending an evaluation of the budget."""
+
+
 class _Tracker:
     """The NLopt callback: evaluates, records, keeps the best point, enforces the budget.
 
@@ -165,16 +174,18 @@ class _Tracker:
     NLopt to stop and returns the best value so far; ``minimise`` re-raises it.
     """
 
-    def __init__(self, evaluate, maxeval: int, low: np.ndarray, high: np.ndarray, on_evaluation):
+    def __init__(self, evaluate, maxeval: int, low: np.ndarray, high: np.ndarray, on_evaluation, deadline: float | None = None):
         self.evaluate = evaluate
         self.low, self.high = low, high
         self.maxeval = maxeval
+        self.deadline = deadline
         self.on_evaluation = on_evaluation
         self.history: list = []
         self.best_x: np.ndarray | None = None
         self.best_value = math.inf
         self.error: BaseException | None = None
         self.optimiser = None
+        self.out_of_time = False
         self._cache: dict = {}
 
     def __call__(self, x: np.ndarray, grad: np.ndarray) -> float:
@@ -192,9 +203,11 @@ class _Tracker:
         key = x.tobytes()
         need_gradient = grad.size > 0
         cached = self._cache.get(key)
+        # Some algorithms (LD_LBFGS's line search) do not check NLopt's own time limit.
+        self.out_of_time = self.out_of_time or (self.deadline is not None and bool(self.history) and time.perf_counter() >= self.deadline)
         if cached is not None and (cached[1] is not None or not need_gradient):
             value, gradient = cached
-        elif len(self.history) >= self.maxeval or self.error is not None:
+        elif len(self.history) >= self.maxeval or self.error is not None or self.out_of_time:
             self._stop()
             grad[:] = 0.0
             return self.best_value
@@ -206,7 +219,9 @@ class _Tracker:
                 self._stop()
                 grad[:] = 0.0
                 return self.best_value
-            self._cache = {key: (value, gradient)}
+            if len(self._cache) >= CACHED_POINTS:
+                del self._cache[next(iter(self._cache))]  # the oldest
+            self._cache[key] = (value, gradient)
             self.history.append((x, value))
             if value < self.best_value or self.best_x is None:
                 self.best_value, self.best_x = value, x
@@ -237,8 +252,13 @@ def check_parameter_count(algorithm: str, count: int) -> None:
         )
 
 
-STOPPING_ERRORS = (nlopt.RoundoffLimited, nlopt.ForcedStop, RuntimeError)
-"""What NLopt raises when it stops early; the best point seen is still the answer."""
+# nlopt 2.11 raises its own exception classes, which no longer derive from RuntimeError and
+# ValueError (older releases raise those built-ins).
+_NLOPT_RUNTIME_ERROR = getattr(nlopt, "runtime_error", RuntimeError)
+_NLOPT_INVALID_ARGUMENT = getattr(nlopt, "invalid_argument", ValueError)
+STOPPING_ERRORS = (nlopt.RoundoffLimited, nlopt.ForcedStop, _NLOPT_RUNTIME_ERROR, RuntimeError)
+"""What NLopt raises when it stops early (a generic failure included, e.g. LD_LBFGS's line search
+on a piecewise-smooth objective); the best point seen is still the answer."""
 
 
 def minimise(
@@ -291,7 +311,7 @@ def minimise(
         raise InputError("the start point lies outside the bounds")
     check_parameter_count(algorithm, start.size)
     begun = time.perf_counter()
-    tracker = _Tracker(evaluate, int(maxeval), low, high, on_evaluation or (lambda *_: None))
+    tracker = _Tracker(evaluate, int(maxeval), low, high, on_evaluation or (lambda *_: None), begun + maxtime if maxtime else None)
     # Gradient algorithms ask for the start's gradient first: compute it now so the cache serves it.
     tracker(start.copy(), np.empty(start.size if algorithm in GRADIENT_ALGORITHMS else 0))
     if tracker.error is not None:
@@ -316,7 +336,7 @@ def minimise(
             stop_reason = _RESULT_NAMES.get(optimiser.last_optimize_result(), f"nlopt result {optimiser.last_optimize_result()}")
         except STOPPING_ERRORS as err:
             stop_reason = f"stopped: {type(err).__name__} {err}".strip()
-        except ValueError as err:
+        except (_NLOPT_INVALID_ARGUMENT, ValueError) as err:
             raise InputError(f"NLopt rejected the search problem ({algorithm}, {start.size} parameters): {err}") from None
         if tracker.error is not None:
             if not isinstance(tracker.error, (nlopt.RoundoffLimited, nlopt.ForcedStop)):
@@ -324,6 +344,8 @@ def minimise(
             stop_reason = f"stopped: {type(tracker.error).__name__} {tracker.error}".strip()
         elif len(tracker.history) >= maxeval:
             stop_reason = "maxeval reached"
+        elif tracker.out_of_time:
+            stop_reason = "maxtime reached"
     return Minimum(
         best_x=tracker.best_x,
         best_value=tracker.best_value,
@@ -480,8 +502,8 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
     parameters, start and best MAE, evaluations), ``<out stem>.trace.csv`` (every evaluation),
     ``<out stem>.trace.png`` (objective against evaluation index) and ``<out stem>.config.json``;
     TensorBoard scalars under ``logdir`` if given. While it runs, every 10 evaluations go to
-    ``<out stem>.trace.partial.csv`` (a stale one from an earlier run is removed when the run
-    starts); a finished search removes it, and a search interrupted during its evaluations
+    ``<out stem>.trace.partial.csv`` (a stale one from an earlier run is removed when the
+    evaluations start, after every input was checked); a finished search removes it, and a search interrupted during its evaluations
     (Ctrl-C, an error) leaves it and writes none of the other files.
 
     Args:
@@ -505,12 +527,12 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
     start = default_vector(config.family, config.num_patterns, rig.rows, rig.cols, config.start, config.seed).numpy()
     check_parameter_count(config.algorithm, start.size)  # before the scenes, which can take minutes
     trace, partial = trace_path(out), partial_trace_path(out)
-    # A partial trace left by an earlier interrupted run would pass for this run's if this one is
-    # interrupted before its first flush (or while the scenes load).
-    _remove_file(partial)
     scenes = prepare_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed)
     objective = PatternObjective(config.family, config.num_patterns, scenes, rig.rows, rig.cols, config.noise_scale,
                                  config.sharpness, config.pixels_per_scene, config.seed)
+    # Every input is checked: now a partial trace left by an earlier interrupted run goes, as it
+    # would pass for this run's if this one were interrupted before its first flush.
+    _remove_file(partial)
     writer = summary_writer(logdir)
     bar = tqdm(total=config.maxeval, desc=f"search {config.family} M={config.num_patterns} {config.algorithm}", unit="eval", disable=not progress)
     seen: list = []
