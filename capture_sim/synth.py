@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import write_json
+from capture_sim.atomic import check_replaceable, write_json
 from capture_sim.errors import MAX_SEED, InputError, check_seed
 from capture_sim.materials import MATERIALS, make_material
 from capture_sim.render import render_olat
@@ -258,6 +258,7 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int
         "splits": {split: [] for split in default_scene_specs(seed)},
     }
     index_path = out_dir / "index.json"
+    check_replaceable(index_path)  # a folder in its place: one clear line before the work
     # index.json is written last: an interrupted run must not leave an earlier set's index over a
     # folder of mixed scenes (``displex demo`` reuses a folder whose index matches its settings).
     index_path.unlink(missing_ok=True)

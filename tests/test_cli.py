@@ -184,6 +184,7 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         # argparse's own errors, in one line too.
         (["train", "--M", "1.5", "--out", str(tmp_path / "t.npz")], "train: argument --M: invalid int value"),
         (["evaluate", "--patterns", "olat", "--scenes", ""], "empty path"),
+        (["evaluate", "--patterns", "", "--scenes", str(scene_file)], "argument --patterns: empty path"),
         # Outputs that would destroy an input.
         (["evaluate", "--patterns", str(good), "--scenes", str(scene_file), "--json", str(good)], "would destroy"),
         # evaluate --out: its maps and results must not replace the pattern file or --json (or the reverse).
@@ -223,6 +224,7 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
     cases += [
         (["evaluate", "--patterns", "olat", "--scenes", str(scene_file), "--out", str(good)], "is a file; evaluate writes a folder"),
         (["scenes", "synth", "--out", str(good), "--size", "8x10"], "is a file; scenes synth writes a folder"),
+        (["scenes", "synth", "--out", str(tmp_path / "indexed"), "--size", "8x10"], "index.json: it exists and is not a regular file"),
         (["evaluate", "--patterns", "olat", "--scenes", str(tmp_path / "set")], f"a synthesised scene set: pass {tmp_path / 'set' / 'test'}"),
     ]
     (tmp_path / "set" / "test").mkdir(parents=True)
@@ -235,6 +237,7 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
     (tmp_path / "eo").mkdir()
     (tmp_path / "eo" / f"{scene_file.stem}_normal.npy").write_bytes(good.read_bytes())
     (tmp_path / "folder.npz").mkdir()
+    (tmp_path / "indexed" / "index.json").mkdir(parents=True)
     (tmp_path / "twin").mkdir()
     (tmp_path / "twin" / scene_file.name).write_bytes(scene_file.read_bytes())
     for argv, message in cases:

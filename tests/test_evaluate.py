@@ -22,3 +22,17 @@ def test_noise_seed_is_seed_times_1000_plus_scene_position():
     captured = capture_scene(pixels, patterns, 1.0, settings.exposure, torch.Generator().manual_seed(3 * 1000 + 1), None)
     result = solve_ps(captured.captures, captured.emission, pixels.points, pixels.lights(), pixels.rig.falloff, settings.ps)
     assert float(angular_error_deg(result.normal, pixels.normal).mean()) == pytest.approx(second, rel=1e-6)
+
+
+def test_falloff_errors_name_the_scene(monkeypatch):
+    from capture_sim.errors import InputError
+
+    rig = load_rig()
+    scene = synthesize_scene("sphere", "lambertian", rig, 16, 20, seed=0)
+
+    def unusable(self, distances):
+        raise InputError("falloff inverse_square is not positive and finite over light distances 0.000..0.951 m")
+
+    monkeypatch.setattr(type(rig.falloff), "check", unusable)
+    with pytest.raises(InputError, match=f"^scene {scene.name}: falloff inverse_square is not positive"):
+        scene_pixels(scene, rig)

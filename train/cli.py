@@ -48,6 +48,13 @@ def _path(text: str) -> Path:
     return Path(text)
 
 
+def _patterns_or_olat(text: str) -> str:
+    """``--patterns`` of evaluate and invrender: 'olat' or a pattern file (an empty path is refused)."""
+    if text != "olat":
+        _path(text)
+    return text
+
+
 def _pattern_output(text: str) -> Path:
     """A pattern file to write, named .npz (``patterns.io.check_pattern_output``)."""
     from patterns.io import check_pattern_output
@@ -133,7 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     evaluate = commands.add_parser("evaluate", help="reconstruct scenes under a pattern set and measure normal errors")
     evaluate.add_argument("--scenes", type=_path, nargs="+", default=(), help="scene files or folders (default: synthetic test split)")
-    evaluate.add_argument("--patterns", required=True, help="pattern file, or 'olat' for the full OLAT stack")
+    evaluate.add_argument("--patterns", type=_patterns_or_olat, required=True, help="pattern file, or 'olat' for the full OLAT stack")
     evaluate.add_argument("--method", choices=("ps", "woodham"), default="ps")
     evaluate.add_argument("--noise", choices=NOISE_CHOICES, default="default")
     evaluate.add_argument("--exposure", default="rig", help=EXPOSURE_HELP)
@@ -193,7 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     invrender = commands.add_parser("invrender", help="baseline inverse renderer: normals, basis BRDFs, relighting")
     invrender.add_argument("--scene", type=_path, required=True, help="scene file (.npz)")
-    invrender.add_argument("--patterns", default="olat", help="pattern file, or 'olat' (fit on 5/6 of the OLAT images)")
+    invrender.add_argument("--patterns", type=_patterns_or_olat, default="olat", help="pattern file, or 'olat' (fit on 5/6 of the OLAT images)")
     invrender.add_argument("--basis", default="auto", help="number of basis BRDFs J, or 'auto' (model selection)")
     invrender.add_argument("--iterations", type=int, default=None, help="Adam steps of the final fit (default 400)")
     invrender.add_argument("--noise", choices=NOISE_CHOICES, default="default")

@@ -71,7 +71,10 @@ def scene_pixels(scene: Scene, rig: Rig, require_normals: bool = False) -> Scene
     flat_mask = torch.as_tensor(scene.mask.reshape(-1))
     points = scene.points(scene_rig.working_distance).reshape(-1, 3)[flat_mask]
     normal = None if scene.normal is None else torch.as_tensor(scene.normal, dtype=torch.float32).reshape(-1, 3)[flat_mask]
-    scene_rig.falloff.check(torch.cdist(points, scene_rig.lights()))
+    try:
+        scene_rig.falloff.check(torch.cdist(points, scene_rig.lights()))
+    except InputError as err:
+        raise InputError(f"scene {scene.name}: {err}") from None
     return ScenePixels(scene.name, scene_rig, transport, points, normal, np.asarray(scene.mask))
 
 
