@@ -92,14 +92,15 @@ def atomic_path(path: str | Path, suffix: str = "", sync: bool = False):
 
 
 @contextmanager
-def staged_files(folder: str | Path):
+def staged_files(folder: str | Path, last: tuple[str, ...] = ()):
     """Yield a temporary folder inside ``folder`` (created if needed) for the files of one command.
 
     When the block ends normally, every file written into it replaces its namesake in ``folder``
-    (one rename each); when it raises, they are discarded (and ``folder`` too if the block created
-    it and it is empty). A command that writes many files during long work thus leaves all of them
-    or none: never new files of some scenes beside an earlier run's results. Callers check the
-    final paths first (``refuse_overwriting``): a rename cannot replace a folder.
+    (one rename each; the names in ``last`` after the others, e.g. a manifest whose presence
+    says the folder is complete); when it raises, they are discarded (and ``folder`` too if the
+    block created it and it is empty). A command that writes many files during long work thus
+    leaves all of them or none: never new files of some scenes beside an earlier run's results.
+    Callers check the final paths first (``refuse_overwriting``): a rename cannot replace a folder.
     """
     folder = Path(folder)
     created = not folder.exists()
@@ -110,7 +111,7 @@ def staged_files(folder: str | Path):
         raise InputError(f"cannot write into {folder}: {err.strerror or err}") from None
     try:
         yield staging
-        for item in sorted(staging.iterdir()):
+        for item in sorted(staging.iterdir(), key=lambda item: (item.name in last, item.name)):
             os.replace(item, folder / item.name)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)

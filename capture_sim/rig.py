@@ -146,7 +146,8 @@ class Rig:
         noise: sensor noise model.
         bit_depth: sensor quantisation in bits, or None for no quantisation.
         working_distance: metres from the camera to the plane used when a scene has no depth.
-        panel_pixels: native display resolution (height, width) in display pixels, for export.
+        panel_pixels: native display resolution (height, width) in display pixels, for export;
+            None when the rig file does not give it (export then refuses the rig).
     """
 
     name: str
@@ -160,7 +161,7 @@ class Rig:
     noise: NoiseModel = field(default_factory=NoiseModel)
     bit_depth: int | None = 12
     working_distance: float = 0.5
-    panel_pixels: tuple[int, int] = (2160, 3840)
+    panel_pixels: tuple[int, int] | None = None
 
     def __post_init__(self):
         positions = np.asarray(self.light_positions, dtype=np.float64)
@@ -184,7 +185,8 @@ class Rig:
             raise InputError(f"rig {self.name}: bit_depth must be 1..24 or none")
         if not (math.isfinite(self.working_distance) and self.working_distance > 0):
             raise InputError(f"rig {self.name}: working_distance must be a positive number of metres, got {self.working_distance!r}")
-        panel_size(self.panel_pixels, f"rig {self.name}: panel_pixels")
+        if self.panel_pixels is not None:
+            object.__setattr__(self, "panel_pixels", panel_size(self.panel_pixels, f"rig {self.name}: panel_pixels"))
 
     @property
     def rows(self) -> int:
@@ -293,7 +295,7 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
             # ``False == 0``: a bool must not switch quantisation off.
             bit_depth=None if (bit_depth in (0, "none") and not isinstance(bit_depth, bool)) else _whole_number("bit_depth", bit_depth),
             working_distance=_number("working_distance", config.get("working_distance", 0.5)),
-            panel_pixels=tuple(display.get("panel_pixels", (2160, 3840))),
+            panel_pixels=display.get("panel_pixels"),
         )
     except InputError as err:  # a check of a part (camera, panel, Rig): prefix the rig once
         message = str(err)

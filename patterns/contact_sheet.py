@@ -48,7 +48,9 @@ def contact_sheet_figure(patterns, title: str, labels: list[str] | None = None, 
     sheet_rows = math.ceil(count / columns)
     panel_width = 3.2
     panel_height = panel_width * rows / cols + 0.9
-    fig = Figure(figsize=(panel_width * columns, panel_height * sheet_rows + 1.2), layout="constrained")
+    width = max(panel_width * columns, 6.4)  # room for the title and caption of a one-pattern sheet
+    caption = textwrap.fill(_CAPTION, width=int(width * 14))
+    fig = Figure(figsize=(width, panel_height * sheet_rows + 1.0 + 0.15 * caption.count("\n")), layout="constrained")
     axes = np.atleast_1d(fig.subplots(sheet_rows, columns, squeeze=False)).ravel()
     for m, ax in enumerate(axes):
         if m >= count:
@@ -59,8 +61,8 @@ def contact_sheet_figure(patterns, title: str, labels: list[str] | None = None, 
         ax.set_xlabel("column c (superpixel)", fontsize=8)
         ax.set_ylabel("row r (superpixel)", fontsize=8)
         ax.tick_params(labelsize=7)
-    fig.suptitle(title)
-    fig.text(0.5, 0.0, textwrap.fill(_CAPTION, width=int(panel_width * columns * 14)), ha="center", va="bottom", fontsize=8)
+    fig.suptitle(textwrap.fill(title, width=int(width * 9)))
+    fig.supxlabel(caption, fontsize=8)  # laid out below the panels, unlike free figure text
     return fig
 
 

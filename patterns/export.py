@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from capture_sim.atomic import write_bytes, write_json
-from capture_sim.errors import InputError, check_array
+from capture_sim.atomic import staged_files, write_bytes, write_json
+from capture_sim.errors import InputError, check_array, is_whole_number
 from capture_sim.png import encode_png, read_png
 from capture_sim.rig import Rig, panel_size
 from patterns.contact_sheet import save_contact_sheet
@@ -136,42 +136,56 @@ def export_frames(
     """
     values = validate_patterns(patterns)
     check_patterns_match_rig(values, rig.rows, rig.cols)
-    if bit_depth not in _BIT_DEPTHS:
-        raise InputError(f"bit depth must be 8 or 16, got {bit_depth}")
+    if not is_whole_number(bit_depth) or bit_depth not in _BIT_DEPTHS:
+        raise InputError(f"bit depth must be 8 or 16, got {bit_depth!r}")
+    if not is_whole_number(compression_level, 0, 9):
+        raise InputError(f"PNG compression level must be a whole number 0..9, got {compression_level!r}")
+    if rig.panel_pixels is None:
+        raise InputError(f"rig {rig.name} gives no display panel_pixels: export needs the panel's native resolution "
+                         "([display] panel_pixels = [height, width] in the rig file)")
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"export folder is a file: {out_dir}")
-    height, width = (int(v) for v in rig.panel_pixels)  # checked when the rig was made
+    height, width = rig.panel_pixels  # checked when the rig was made
     row_bounds = superpixel_boundaries(rig.rows, height)
     col_bounds = superpixel_boundaries(rig.cols, width)
     mirrored = columns_mirrored(rig)
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise InputError(f"cannot create export folder {out_dir}: {err.strerror}") from None
-    # Frames of an earlier export (more patterns, or OLAT frames) would be played too: remove
-    # them, but only from a folder an export wrote (its manifest, or the marker of an export that
-    # was interrupted); other files with such names are the user's.
+    # Frames of an earlier export (more patterns, or OLAT frames) would be played too: they are
+    # removed, but only from a folder an export wrote (its manifest, or the marker of an export
+    # interrupted while replacing files); other files with such names are the user's.
     marker = out_dir / EXPORT_MARKER
     manifest_path = out_dir / MANIFEST_NAME
     ours = marker.exists() or _written_by_export(manifest_path)
     if not ours and manifest_path.exists():
         raise InputError(f"{manifest_path} was not written by displex export: not an export folder; choose another folder")
-    if not ours and any(any(out_dir.glob(pattern_glob)) for pattern_glob in FRAME_GLOBS):
-        raise InputError(f"{out_dir} holds frame files (pattern_*.png, olat_*.png, ...) but no {MANIFEST_NAME}: "
+    if not ours and any(any(out_dir.glob(pattern_glob)) for pattern_glob in (*FRAME_GLOBS, CONTACT_SHEET_NAME)):
+        raise InputError(f"{out_dir} holds frame files (pattern_*.png, olat_*.png, contact_sheet.png, ...) but no {MANIFEST_NAME}: "
                          "not an export folder; choose another folder or remove them")
-    write_bytes(marker, b"export in progress\n")
-    # A stale manifest would describe frames about to be replaced; without it the folder reads as incomplete.
-    (out_dir / MANIFEST_NAME).unlink(missing_ok=True)
-    for pattern_glob in FRAME_GLOBS:
-        for stale in out_dir.glob(pattern_glob):
-            stale.unlink()
 
+    # Everything is written into a staging folder first and moves in at the end (the manifest
+    # last): an export that fails or is interrupted leaves the earlier export as it was.
+    with staged_files(out_dir, last=(MANIFEST_NAME,)) as staging:
+        manifest = _write_export(values, rig, staging, bit_depth, include_olat, rig_name or rig.name, compression_level,
+                                 (height, width), row_bounds, col_bounds, mirrored)
+        # The earlier export's manifest and frames go just before the new files move in; the
+        # marker says whose frames these are should that moment be interrupted.
+        write_bytes(marker, b"export in progress\n")
+        manifest_path.unlink(missing_ok=True)
+        for pattern_glob in FRAME_GLOBS:
+            for stale in out_dir.glob(pattern_glob):
+                stale.unlink()
+    marker.unlink(missing_ok=True)
+    return manifest
+
+
+def _write_export(values, rig: Rig, folder: Path, bit_depth: int, include_olat: bool, name: str, compression_level: int,
+                  panel: tuple[int, int], row_bounds, col_bounds, mirrored: bool) -> dict:
+    """Write the frames, the contact sheet and the manifest of ``export_frames`` into ``folder``."""
     frames = []
 
     def write_frame(file_name: str, pattern: np.ndarray, **description) -> None:
-        data = encode_png(render_frame(pattern, (height, width), bit_depth, mirrored), compression_level)
-        write_bytes(out_dir / file_name, data)
+        data = encode_png(render_frame(pattern, panel, bit_depth, mirrored), compression_level)
+        write_bytes(folder / file_name, data)
         frames.append({"file": file_name, **description, "sha256": hashlib.sha256(data).hexdigest()})
 
     for m, pattern in enumerate(values):
@@ -186,15 +200,14 @@ def export_frames(
             one_lit[row, col] = 1.0
             write_frame(f"olat_{light:03d}.png", one_lit, kind="olat", light=light, row=row, col=col)
 
-    name = rig_name or rig.name
-    save_contact_sheet(out_dir / CONTACT_SHEET_NAME, values, f"{len(values)} patterns for rig {name} (pattern grid order)")
+    save_contact_sheet(folder / CONTACT_SHEET_NAME, values, f"{len(values)} patterns for rig {name} (pattern grid order)")
     manifest = {
         "format": FORMAT,
         "rig": name,
         "rows": rig.rows,
         "cols": rig.cols,
         "num_patterns": len(values),
-        "panel_pixels": [height, width],
+        "panel_pixels": list(panel),
         "row_boundaries": row_bounds.tolist(),
         "col_boundaries": col_bounds.tolist(),
         "columns_mirrored": mirrored,
@@ -207,15 +220,15 @@ def export_frames(
         "patterns": _float32_lists(values),
         "contact_sheet": CONTACT_SHEET_NAME,
     }
-    write_json(out_dir / MANIFEST_NAME, manifest)
-    marker.unlink(missing_ok=True)
+    write_json(folder / MANIFEST_NAME, manifest)
     return manifest
 
 
 def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.ndarray, dict]:
     """Recover a pattern set from exported frames.
 
-    Reads ``manifest.json``, verifies the SHA-256 of every frame it lists, reads the pattern frames
+    Reads ``manifest.json``, verifies the SHA-256 of every frame it lists (and that the folder
+    holds no other frame files), reads the pattern frames
     and averages the central half of every superpixel block (undoing the column mirroring).
 
     Args:
@@ -242,6 +255,11 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
             raise InputError(f"{frames_dir}: frame {frame['file']} listed in the manifest is missing")
         if hashlib.sha256(path.read_bytes()).hexdigest() != frame.get("sha256"):
             raise InputError(f"{frames_dir}: frame {frame['file']} does not match its SHA-256 in the manifest")
+    listed_files = {frame["file"] for frame in manifest["frames"]}
+    unlisted = sorted(path.name for glob in FRAME_GLOBS for path in frames_dir.glob(glob) if path.name not in listed_files)
+    if unlisted:  # a rig that plays the folder's frames would show them too
+        raise InputError(f"{frames_dir}: frame files not listed in the manifest: {', '.join(unlisted[:5])}"
+                         f"{f' and {len(unlisted) - 5} more' if len(unlisted) > 5 else ''}; remove them or export again")
     pattern_frames = sorted((f for f in manifest["frames"] if f.get("kind") == "pattern"), key=lambda f: f["index"])
     # The count first: a forged num_patterns of 10^12 must not build a list of that length.
     if len(pattern_frames) != manifest["num_patterns"] or [f["index"] for f in pattern_frames] != list(range(len(pattern_frames))):

@@ -262,7 +262,7 @@ def test_export_keeps_frame_files_it_did_not_write(tmp_path, small_rig):
     with pytest.raises(InputError, match="manifest.json was not written by displex export"):
         export_frames(_patterns(small_rig, 1), small_rig, theirs)
     assert sorted(p.name for p in theirs.iterdir()) == ["black.png", "manifest.json"]
-    with pytest.raises(InputError, match="cannot create export folder"):
+    with pytest.raises(InputError, match="cannot write into .*black.png/inside: Not a directory"):
         export_frames(_patterns(small_rig, 1), small_rig, theirs / "black.png" / "inside")
 
 
@@ -290,6 +290,7 @@ def test_export_and_pattern_commands_never_destroy_their_inputs(tmp_path, small_
     assert (tmp_path / "rig.toml").read_text() == (RIG_DIR / "panel-55in-4x8.toml").read_text()
     manifest = json.loads((out / "manifest.json").read_text())
     (out / "manifest.json").write_text(json.dumps(dict(manifest, num_patterns=10**12)))
+    (out / "pattern_009.png").unlink()  # a frame the manifest does not list is refused first
     with pytest.raises(InputError, match="manifest lists pattern frames"):
         import_frames(out)
 
@@ -301,3 +302,60 @@ def test_contact_sheet_of_a_large_set_draws_the_first_panels():
     fig = contact_sheet_figure(values, "many")
     drawn = [ax for ax in fig.axes if ax.images]
     assert len(drawn) == MAX_PANELS and f"the first {MAX_PANELS} of {MAX_PANELS + 5} shown" in fig._suptitle.get_text()
+
+
+def test_a_failed_re_export_leaves_the_earlier_export_whole(tmp_path, small_rig, monkeypatch):
+    """A re-export that fails part-way (a full disk, Ctrl-C) leaves the earlier export as it was,
+    importable, with no partial frames; one that succeeds replaces it completely."""
+    import patterns.export as export
+
+    out = tmp_path / "frames"
+    export_frames(_patterns(small_rig, 2), small_rig, out)
+    before = {path.name: path.read_bytes() for path in out.iterdir()}
+    encode, written = export.encode_png, []
+
+    def fails_on_the_third_frame(image, level):
+        if len(written) == 2:
+            raise OSError(28, "No space left on device")
+        written.append(1)
+        return encode(image, level)
+
+    monkeypatch.setattr(export, "encode_png", fails_on_the_third_frame)
+    with pytest.raises(OSError):
+        export_frames(_patterns(small_rig, 3), small_rig, out, include_olat=True)
+    assert {path.name: path.read_bytes() for path in out.iterdir()} == before
+    assert import_frames(out)[0].shape[0] == 2
+    monkeypatch.setattr(export, "encode_png", encode)
+    export_frames(_patterns(small_rig, 1), small_rig, out)
+    assert sorted(path.name for path in out.iterdir()) == ["contact_sheet.png", "manifest.json", "pattern_000.png"]
+
+
+def test_export_refusals_and_unlisted_frames(tmp_path, small_rig):
+    """A user's contact_sheet.png marks a foreign folder; a rig without panel_pixels, a float bit
+    depth and a bad compression level are refused; import refuses frame files the manifest does
+    not list (a rig playing the folder would show them)."""
+    mine = tmp_path / "user"
+    mine.mkdir()
+    (mine / "contact_sheet.png").write_bytes(b"my own sheet")
+    with pytest.raises(InputError, match="not an export folder"):
+        export_frames(_patterns(small_rig, 1), small_rig, mine)
+    assert (mine / "contact_sheet.png").read_bytes() == b"my own sheet"
+    with pytest.raises(InputError, match="gives no display panel_pixels"):
+        export_frames(_patterns(small_rig, 1), small_rig.replace(panel_pixels=None), tmp_path / "a")
+    with pytest.raises(InputError, match="bit depth must be 8 or 16, got 8.0"):
+        export_frames(_patterns(small_rig, 1), small_rig, tmp_path / "b", bit_depth=8.0)
+    with pytest.raises(InputError, match="compression level"):
+        export_frames(_patterns(small_rig, 1), small_rig, tmp_path / "c", compression_level=10)
+    assert not any((tmp_path / name).exists() for name in "abc")
+    out = tmp_path / "frames"
+    export_frames(_patterns(small_rig, 2), small_rig, out)
+    (out / "pattern_002.png").write_bytes((out / "pattern_000.png").read_bytes())
+    with pytest.raises(InputError, match="frame files not listed in the manifest: pattern_002.png"):
+        import_frames(out)
+
+
+def test_contact_sheet_of_one_pattern_has_room_for_its_title():
+    from patterns.contact_sheet import contact_sheet_figure
+
+    fig = contact_sheet_figure(np.zeros((1, 9, 16, 3), np.float32), "1 patterns for rig dir-odyssey-ark (pattern grid order)")
+    assert fig.get_size_inches()[0] >= 6.4  # a 3.2-inch sheet cut the title off on both sides
