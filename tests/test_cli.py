@@ -185,6 +185,7 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         (["train", "--M", "1.5", "--out", str(tmp_path / "t.npz")], "train: argument --M: invalid int value"),
         (["evaluate", "--patterns", "olat", "--scenes", ""], "empty path"),
         (["evaluate", "--patterns", "", "--scenes", str(scene_file)], "argument --patterns: empty path"),
+        (["patterns", "list", "--M", "0"], "--M must be at least 1, got 0"),
         # Outputs that would destroy an input.
         (["evaluate", "--patterns", str(good), "--scenes", str(scene_file), "--json", str(good)], "would destroy"),
         # evaluate --out: its maps and results must not replace the pattern file or --json (or the reverse).

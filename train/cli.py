@@ -439,6 +439,9 @@ def _patterns_make(args) -> None:
 def _patterns_list(args) -> None:
     from patterns.families import FAMILIES
 
+    if args.num_patterns < 1:
+        raise InputError(f"--M must be at least 1, got {args.num_patterns}")
+
     for name, family in FAMILIES.items():
         if not family.supports(args.num_patterns):
             print(f"{name:<20} (not defined for M={args.num_patterns}) {family.summary}")
