@@ -122,6 +122,37 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = ()):
     shutil.rmtree(staging, ignore_errors=True)
 
 
+@contextmanager
+def exclusive_output(path: str | Path, command: str):
+    """Hold an exclusive lock on the output ``path`` for the block: a second run writing the same
+    output at the same time (whose checkpoint or files would silently replace this one's) fails at
+    once with ``InputError``. The lock is the hidden file ``.<name>.lock`` beside ``path``, locked
+    with ``flock`` (released by the system if the process dies, so never stale) and removed at the
+    end. Where ``fcntl`` does not exist (Windows) the block runs unlocked."""
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    path = Path(path)
+    lock_path = path.with_name(f".{path.name}.lock")
+    check_replaceable(lock_path)
+    try:
+        lock_path.parent.mkdir(parents=True, exist_ok=True)
+        handle = open(lock_path, "a")
+    except OSError as err:
+        raise InputError(f"cannot write {lock_path}: {err.strerror or err}") from None
+    with handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise InputError(f"another {command} is writing {path} right now; wait for it or choose another output") from None
+        try:
+            yield
+        finally:
+            lock_path.unlink(missing_ok=True)
+
+
 def write_bytes(path: str | Path, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically."""
     with atomic_path(path) as tmp:

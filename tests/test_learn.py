@@ -316,3 +316,17 @@ def test_normal_loss_closed_form_and_gradcheck(kind):
     probe = probe / probe.norm(dim=1, keepdim=True)
     probe[:, 2] = -probe[:, 2].abs()
     assert torch.autograd.gradcheck(lambda e: normal_loss(e, truth[:1].expand(4, 3), kind, 80.0), (probe.requires_grad_(),))
+
+
+def test_a_second_run_on_the_same_output_is_refused(tmp_path, scene_dirs):
+    """Two runs writing one --out at once would share a checkpoint: the second fails at once."""
+    from capture_sim.atomic import exclusive_output
+
+    out = tmp_path / "a.npz"
+    config = _config(scene_dirs, steps=1, val_every=0)
+    with exclusive_output(out, "training run"):
+        with pytest.raises(InputError, match=f"another training run is writing {out} right now"):
+            train_patterns(config, out, progress=False)
+    assert not (tmp_path / ".a.npz.lock").exists()
+    train_patterns(config, out, progress=False)
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["a.ckpt.pt", "a.config.json", "a.npz"]

@@ -305,3 +305,13 @@ def test_interrupted_search_leaves_a_partial_trace_and_the_finished_run_untouche
     names = list(rows[0])[1:-2]
     assert np.array_equal([[float(row[name]) for name in names] for row in rows], evaluated[:10])
     assert {name: (tmp_path / name).read_bytes() for name in finished} == finished
+
+
+def test_a_second_search_on_the_same_output_is_refused(scene_dir, tmp_path):
+    from capture_sim.atomic import exclusive_output
+
+    out = tmp_path / "s.npz"
+    with exclusive_output(out, "search"):
+        with pytest.raises(InputError, match="another search is writing"):
+            run_search(SearchConfig(maxeval=2, scenes=(str(scene_dir),), scene_size=SIZE), out, progress=False)
+    assert not any(tmp_path.iterdir())

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import atomic_path, write_json
+from capture_sim.atomic import atomic_path, exclusive_output, write_json
 from capture_sim.errors import InputError, check_seed
 from capture_sim.rig import DEFAULT_RIG, load_rig
 from capture_sim.scene import file_fingerprints, scene_paths
@@ -361,8 +361,13 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
     """
     if checkpoint_mode not in CHECKPOINT_MODES:
         raise InputError(f"checkpoint_mode must be one of {', '.join(CHECKPOINT_MODES)}, got {checkpoint_mode!r}")
+    # A second run on the same output would share its checkpoint and silently replace its result.
+    with exclusive_output(out, "training run"):
+        return _train(config, Path(out), logdir, progress, checkpoint_mode)
+
+
+def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, checkpoint_mode: str) -> TrainResult:
     began = time.perf_counter()
-    out = Path(out)
     rig = load_rig(config.rig)
     train_scenes = training_samplers([scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed)], config)
     # Validating a user's training scenes against the synthetic defaults would report a number about

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import write_json, write_text
+from capture_sim.atomic import exclusive_output, write_json, write_text
 from capture_sim.errors import DisplexWarning, InputError, check_seed
 from capture_sim.rig import DEFAULT_RIG, load_rig
 from patterns.families import PRESETS, default_vector, get_family
@@ -515,9 +515,14 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
     Returns:
         The pattern file's meta dict plus ``pattern_file``, ``trace_csv`` and ``trace_png`` paths.
     """
+    # A second search on the same output would share its partial trace and replace its result.
+    with exclusive_output(out, "search"):
+        return _search(config, Path(out), logdir, progress)
+
+
+def _search(config: SearchConfig, out: Path, logdir: Path | None, progress: bool) -> dict:
     from train.figures import save_figure
 
-    out = Path(out)
     rig = load_rig(config.rig)
     family = get_family(config.family)
     family.check(config.num_patterns, rig.rows, rig.cols)
