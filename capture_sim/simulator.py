@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import numbers
+from fractions import Fraction
 from dataclasses import dataclass
 
 import numpy as np
@@ -145,7 +146,9 @@ def auto_exposure(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERC
         return 1.0  # no pixels: nothing to expose for
     if math.isnan(float(values.sum())):  # any NaN makes the sum NaN; ~5x cheaper than isnan().any()
         raise InputError("auto exposure: the noise-free radiance contains NaN")
-    rank = min(values.numel(), max(1, int(np.ceil(percentile / 100.0 * values.numel()))))
+    # Nearest rank ceil(p n / 100) in exact arithmetic: in floats 99.9 / 100 * 1000 is 999.0000000000001,
+    # and the ceiling would take the next rank (the maximum), which one bright pixel then decides.
+    rank = min(values.numel(), max(1, math.ceil(Fraction(str(percentile)) * values.numel() / 100)))
     # The rank-th smallest is the smallest of the top numel - rank + 1: topk finds those few
     # values ~3x faster than kthvalue's full selection (a learning step asks every time).
     level = float(torch.topk(values, values.numel() - rank + 1, sorted=False).values.kthvalue(1).values)
@@ -214,7 +217,7 @@ def sensor(
         clip_sharpness: beta of the clip's gradient tail, per unit of full scale.
 
     Returns:
-        (...) captures in [0, 1], same shape as ``signal``.
+        (...) captures in [0, 1], same shape as ``signal``, in its dtype or float32 if narrower.
 
     Raises:
         InputError: a bit depth outside 1..24 or a clip sharpness that is not a positive number.
@@ -224,6 +227,9 @@ def sensor(
         raise InputError(f"bit_depth must be None or a whole number in 1..24, got {bit_depth!r}")
     if not 0 < clip_sharpness < math.inf:
         raise InputError(f"clip_sharpness must be a positive number, got {clip_sharpness!r}")
+    # At least float32: float16's smallest normal (6e-5) is a variance floor far above the read
+    # noise's, and its spacing near 1 is coarser than 12-bit quantisation.
+    signal = signal.to(torch.promote_types(signal.dtype, torch.float32))
     if noise is not None:
         # The floor keeps the square root's gradient finite where the variance is zero (no read
         # noise at zero signal, or a noise model scaled to 0).

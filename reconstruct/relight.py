@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 
@@ -93,22 +92,6 @@ def olat_emission(light_index: torch.Tensor, num_lights: int, exposure: float, d
     emission = torch.zeros((index.numel(), num_lights, 3), dtype=dtype)
     emission[torch.arange(index.numel()), index] = exposure
     return emission
-
-
-def relight(render: Callable[[torch.Tensor], torch.Tensor], light_index: torch.Tensor, num_lights: int, exposure: float) -> torch.Tensor:
-    """Exposed OLAT images of the lights ``light_index`` from a fitted scene.
-
-    Args:
-        render: maps an emission (M, K, 3) to images (M, N, 3), e.g.
-            ``lambda e: result.render(points, lights, e, falloff)``.
-        light_index: (M,) lights to render.
-        num_lights: K.
-        exposure: e applied to the OLAT images.
-
-    Returns:
-        (M, N, 3) e * O[k] of the model, unclipped.
-    """
-    return render(olat_emission(light_index, num_lights, exposure))
 
 
 def pooled_psnr(predicted: torch.Tensor, truth: torch.Tensor) -> float:

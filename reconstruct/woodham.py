@@ -68,9 +68,11 @@ class WoodhamConfig:
     """Pixels with a larger condition number (or unconverged) are searched again from 12 more
     starting normals (``math.inf`` disables restarts)."""
     dark_threshold: float = 1e-3
-    """Pixels whose brightest capture is below this are flagged dark."""
+    """Pixels whose brightest capture is below this (full scale 1) are flagged dark."""
     saturation_threshold: float = 0.999
-    """Captures at or above this are dropped and their pixel flagged saturated."""
+    """Captures at or above this (full scale 1) are dropped and their pixel flagged saturated.
+    Both thresholds assume exposed captures in [0, 1]: scale a raw OLAT stack first (see
+    ``solve_woodham``)."""
     condition_threshold: float = 1e4
     """Pixels whose normal condition number exceeds this are flagged ill_conditioned."""
     min_distance: float = 1e-3
@@ -169,7 +171,7 @@ def _solve_block(evaluator, light_field: LightField, config, dark_and_saturated=
     return finalise(state.normal.T, albedo.T, condition, relative_residual(state.normal, state.moments), flags, light_field, config)
 
 
-def _olat_emission(emission: torch.Tensor):
+def _diagonal_light_emission(emission: torch.Tensor):
     """(K, 3) per-light emission if ``emission`` (M, K, 3) is one-light-at-a-time, else None."""
     num_patterns, num_lights, _ = emission.shape
     if num_patterns != num_lights:
@@ -189,7 +191,7 @@ def _check_inputs(captures, emission, points, lights, config, chunk_size):
 def _solve(captures, emission, points, pixel_index, lights, falloff, config, chunk_size, light_emission=None) -> PSResult:
     """Shared driver; ``light_emission`` (K, 3) selects the OLAT path directly (``emission`` unused)."""
     if light_emission is None:
-        light_emission = _olat_emission(emission.detach())
+        light_emission = _diagonal_light_emission(emission.detach())
     dtype = torch.promote_types(torch.promote_types(captures.dtype, (emission if light_emission is None else light_emission).dtype), torch.float32)
     points = torch.as_tensor(points).detach().to(dtype)
     lights = torch.as_tensor(lights).detach().to(dtype)
@@ -226,9 +228,10 @@ def solve_woodham(captures, emission, points, lights, falloff, config: WoodhamCo
     """Woodham least-squares photometric stereo of a set of pixels (see the module docstring).
 
     Args:
-        captures: (M, N, 3) linear captures, M >= 3: an OLAT stack (M = K, e.g. a scene's ``olat``
-            with ``emission`` the identity) or captures under M patterns; float16 stacks are read
-            block by block without a full copy.
+        captures: (M, N, 3) linear captures with full scale 1 (``config``'s dark and saturation
+            thresholds are in these units), M >= 3: an OLAT stack (M = K, e.g. a scene's ``olat``
+            times an exposure e, with ``emission`` e times the identity) or captures under M
+            patterns; float16 stacks are read block by block without a full copy.
         emission: (M, K, 3) effective emission E >= 0 (exposure included). A diagonal one (capture
             k lit by superpixel k alone) selects the OLAT path.
         points: (N, 3) surface points, metres, camera frame.
@@ -248,8 +251,9 @@ def solve_woodham(captures, emission, points, lights, falloff, config: WoodhamCo
 
     Example:
         >>> olat = scene_olat.reshape(144, -1, 3)  # doctest: +SKIP
-        >>> eye = torch.eye(144)[:, :, None].expand(144, 144, 3)
-        >>> result = solve_woodham(olat, eye, points, rig.lights(), rig.falloff)  # doctest: +SKIP
+        >>> e = auto_exposure(olat)  # raw OLAT values come in any units; put them at full scale 1
+        >>> eye = e * torch.eye(144)[:, :, None].expand(144, 144, 3)  # doctest: +SKIP
+        >>> result = solve_woodham(e * olat, eye, points, rig.lights(), rig.falloff)  # doctest: +SKIP
     """
     _check_inputs(captures, emission, points, lights, config, chunk_size)
     return _solve(captures, emission, points, None, lights, falloff, config, chunk_size)
@@ -261,8 +265,8 @@ def solve_woodham_olat(
     """Woodham least squares on an OLAT stack (capture k lit by superpixel k alone at unit intensity).
 
     Args:
-        captures: (K, N, 3) OLAT captures of N pixels (e.g. a scene's OLAT stack, or simulated OLAT
-            captures with the backlight removed), not copied.
+        captures: (K, N, 3) OLAT captures of N pixels with full scale 1 (e.g. a scene's OLAT stack
+            times ``exposure``, or simulated OLAT captures with the backlight removed), not copied.
         points: (N, 3) surface points, metres, camera frame.
         lights: (K, 3) superpixel positions, metres, camera frame.
         falloff: callable distance (metres) -> falloff factor.

@@ -64,11 +64,15 @@ def test_auto_exposure_puts_percentile_at_target():
     assert abs(float(torch.quantile(exposed, 0.999)) - 0.9) < 2e-3
     values = radiance.reshape(-1)
     for percentile in (99.9, 50.0, 100.0):  # exactly the rank statistic, top and middle included
-        rank = math.ceil(percentile / 100 * values.numel())
+        rank = -(-round(percentile * 10) * values.numel() // 1000)  # ceil(p n / 100) in integers
         assert auto_exposure(radiance, percentile) == 0.9 / float(torch.kthvalue(values, rank).values)
     with pytest.raises(InputError, match="NaN"):  # refused wherever it would rank
         auto_exposure(torch.tensor([1.0, math.nan, 2.0, 3.0]), 50.0)
     assert auto_exposure(torch.tensor([1, 2, 3])) == 0.9 / 3.0  # integer radiance is read as float
+    # The nearest rank of 1000 values is the 999th: in floats, ceil(99.9 / 100 * 1000) took the 1000th,
+    # so one bright outlier set the exposure.
+    assert auto_exposure(torch.arange(1.0, 1001.0)) == 0.9 / 999
+    assert auto_exposure(torch.cat([torch.ones(999), torch.tensor([1000.0])])) == 0.9
     assert auto_exposure(torch.zeros(2, 10, 3)) == 1.0
     # A scene scaled past float32's range has no usable exposure: said, not returned as 0 or 1.
     for scale in (math.inf, 1e-42):
@@ -86,6 +90,15 @@ def test_noise_variance_matches_model():
         expected = noise.shot * level + noise.read_std**2
         assert abs(float(captured.var()) / expected - 1.0) < 0.05
         assert abs(float(captured.mean()) - level) < 4 * np.sqrt(expected / 1e5)
+
+
+def test_float16_signal_gets_the_noise_of_the_model():
+    """float16's smallest normal used to floor the variance far above the read noise."""
+    noise = NoiseModel(shot=1e-4, read_std=5e-4)
+    signal = torch.full((200_000,), 0.1, dtype=torch.float16)
+    captured = sensor(signal, noise, bit_depth=None, generator=torch.Generator().manual_seed(0))
+    assert captured.dtype == torch.float32
+    assert abs(float(captured.std()) / math.sqrt(noise.shot * 0.1 + noise.read_std**2) - 1.0) < 0.05
 
 
 def test_noise_is_reproducible_with_seed(tiny_rig):

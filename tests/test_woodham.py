@@ -100,14 +100,14 @@ def test_float32_diagonal_emission_is_detected_as_olat(exposure):
     """A one-light-at-a-time emission with any exposure in float32 takes the OLAT path (a sum
     comparison used to miss it through rounding)."""
     from reconstruct.relight import olat_emission
-    from reconstruct.woodham import _olat_emission
+    from reconstruct.woodham import _diagonal_light_emission
 
     emission = olat_emission(torch.arange(144), 144, exposure)
     assert emission.dtype == torch.float32
-    detected = _olat_emission(emission)
+    detected = _diagonal_light_emission(emission)
     assert detected is not None and torch.equal(detected, torch.diagonal(emission, dim1=0, dim2=1).T)
     emission[3, 5, 1] = 1e-6
-    assert _olat_emission(emission) is None
+    assert _diagonal_light_emission(emission) is None
 
 
 def test_no_lights_is_refused():
