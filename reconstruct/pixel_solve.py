@@ -73,13 +73,17 @@ def damped_direction(system: torch.Tensor, rhs: torch.Tensor, damping: float) ->
     """
     scale = (symmetric_trace(system) / 3).clamp_min(_tiny(system.dtype))
     xx, yy, zz, xy, xz, yz = (system / scale).unbind(0)
-    xx, yy, zz = xx + damping, yy + damping, zz + damping
-    # Adjugate of [[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]] (symmetric).
-    a00, a11, a22 = yy * zz - yz * yz, xx * zz - xz * xz, xx * yy - xy * xy
-    a01, a02, a12 = xz * yz - xy * zz, xy * yz - yy * xz, xy * xz - xx * yz
+    a00, a11, a22, a01, a02, a12 = symmetric_adjugate(xx + damping, yy + damping, zz + damping, xy, xz, yz)
     r0, r1, r2 = rhs.unbind(0)
     solution = torch.stack([a00 * r0 + a01 * r1 + a02 * r2, a01 * r0 + a11 * r1 + a12 * r2, a02 * r0 + a12 * r1 + a22 * r2])
     return unit(solution)
+
+
+def symmetric_adjugate(xx, yy, zz, xy, xz, yz):
+    """Entries (00, 11, 22, 01, 02, 12) of the adjugate of [[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]
+    (symmetric, so is its adjugate); every argument a tensor of per-pixel values."""
+    return (yy * zz - yz * yz, xx * zz - xz * xz, xx * yy - xy * xy,
+            xz * yz - xy * zz, xy * yz - yy * xz, xy * xz - xx * yz)
 
 
 def damped_solve(system: torch.Tensor, rhs: torch.Tensor, damping: float) -> torch.Tensor:
@@ -92,8 +96,7 @@ def damped_solve(system: torch.Tensor, rhs: torch.Tensor, damping: float) -> tor
     scale = (symmetric_trace(system) / 3).clamp_min(_tiny(system.dtype))
     xx, yy, zz, xy, xz, yz = (system / scale[..., None, :]).unbind(-2)
     xx, yy, zz = xx + damping, yy + damping, zz + damping
-    a00, a11, a22 = yy * zz - yz * yz, xx * zz - xz * xz, xx * yy - xy * xy
-    a01, a02, a12 = xz * yz - xy * zz, xy * yz - yy * xz, xy * xz - xx * yz
+    a00, a11, a22, a01, a02, a12 = symmetric_adjugate(xx, yy, zz, xy, xz, yz)
     det = xx * a00 + xy * a01 + xz * a02
     r0, r1, r2 = (rhs / scale[..., None, :]).unbind(-2)
     adjugate_rhs = torch.stack([a00 * r0 + a01 * r1 + a02 * r2, a01 * r0 + a11 * r1 + a12 * r2, a02 * r0 + a12 * r1 + a22 * r2], dim=-2)

@@ -29,7 +29,7 @@ import torch
 
 from capture_sim.errors import InputError, check_array, check_field_types
 from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, finite_albedo, lighting_matrix, lighting_moments
-from reconstruct.pixel_solve import put_pixels, symmetric_apply, take_pixels
+from reconstruct.pixel_solve import put_pixels, symmetric_adjugate, symmetric_apply, take_pixels
 
 
 @dataclass(frozen=True)
@@ -84,11 +84,10 @@ def _symmetric_direction(system: torch.Tensor, rhs: torch.Tensor) -> torch.Tenso
     adj(S) rhs is divided by |det(S)|, not det(S): the determinant keeps the result of order one,
     and its sign, which rounding can make negative in float32, cannot flip the normal.
     """
-    a, b, c, d, e, f = system.unbind(0)  # [[a, d, e], [d, b, f], [e, f, c]]
-    c00, c11, c22 = b * c - f * f, a * c - e * e, a * b - d * d
-    c01, c02, c12 = e * f - d * c, d * f - b * e, d * e - a * f
-    det = a * c00 + d * c01 + e * c02
-    adjugate = torch.stack([c00, c11, c22, c01, c02, c12])
+    xx, yy, zz, xy, xz, yz = system.unbind(0)
+    a00, a11, a22, a01, a02, a12 = symmetric_adjugate(xx, yy, zz, xy, xz, yz)
+    det = xx * a00 + xy * a01 + xz * a02
+    adjugate = torch.stack([a00, a11, a22, a01, a02, a12])
     return symmetric_apply(adjugate, rhs) / det.abs().clamp_min(1e-30)
 
 
