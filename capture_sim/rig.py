@@ -243,6 +243,12 @@ def load_rig(name_or_path: str | Path = DEFAULT_RIG) -> Rig:
     return rig_from_dict(load_toml(path), default_name=path.stem)
 
 
+def rig_file(name_or_path: str | Path) -> Path | None:
+    """The user's TOML file a rig setting names (an input file that outputs must not replace), or
+    None for a preset name (``load_rig``'s rule: a path ending in .toml is a file)."""
+    return Path(name_or_path) if Path(name_or_path).suffix == ".toml" else None
+
+
 RIG_KEYS = {
     "": ("name", "exposure", "bit_depth", "working_distance", "camera", "display", "noise", "falloff"),
     "camera": ("height", "width", "fx", "fy", "cx", "cy", "exposure_ms"),

@@ -164,10 +164,13 @@ def auto_exposure(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERC
 
 def check_exposure_range(exposure: float, *exposed: torch.Tensor) -> None:
     """Raise ``InputError`` if an exposure pushed any of the ``exposed`` tensors (exposed
-    radiance or emission, any shape) past their dtype's range. There the radiance is inf, and
-    inf * 0 (an unlit pixel) NaN: without this check the solver would report NaN captures."""
+    radiance or emission, any shape) past their dtype's range (there the radiance is inf, and
+    inf * 0, an unlit pixel, NaN: the solver would report NaN captures), or is 0 in their dtype
+    (every capture black: the solvers would report no emitted light)."""
     if not all(bool(torch.isfinite(values.detach()).all()) for values in exposed):
         raise InputError(f"exposure {exposure:g} is too large: the exposed radiance overflows {exposed[0].dtype}; use a smaller value or 'auto'")
+    if float(torch.tensor(exposure, dtype=exposed[0].dtype)) == 0:  # every capture would be black
+        raise InputError(f"exposure {exposure:g} is too small: it is 0 in {exposed[0].dtype}; use a larger value or 'auto'")
 
 
 class _SaturatingClip(torch.autograd.Function):

@@ -207,6 +207,9 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         (["invrender", "--scene", str(scene_file), "--json", str(good_npz / "x.json")], "is a file, not a folder"),
         (["invrender", "--scene", str(scene_file), "--out", str(good_npz)], "is a file; invrender writes a folder"),
         (["invrender", "--scene", str(scene_file), "--patterns", "olat", "--exposure", "5"], "OLAT captures are always auto-exposed"),
+        (["invrender", "--scene", str(scene_file), "--rig", str(tmp_path / "gamma.toml"), "--json", str(tmp_path / "gamma.toml")],
+         "is also the --rig file"),
+        (["evaluate", "--patterns", "olat", "--scenes", str(scene_file), "--exposure", "1e-300"], "exposure 1e-300 is too small"),
         (["bench", "sim", "--repeats", "1", "--json", str(tmp_path / "twin")], "exists and is not a regular file"),
         (["bench", "ps", "--sweep", "--json", str(tmp_path / "sweep.png")], "would destroy"),
         # An output path that is a folder fails before any work (train used to learn first).

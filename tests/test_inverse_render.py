@@ -690,17 +690,43 @@ def test_run_invrender_without_ground_truth_normals(tmp_path, small_scene):
     assert (out / "normals_figure.png").is_file()
 
 
-def test_run_invrender_failure_leaves_no_staged_logs(tmp_path, scene_file, monkeypatch):
+def test_run_invrender_failure_leaves_the_earlier_run_whole(tmp_path, scene_file, monkeypatch):
+    """A rerun that fails part-way (here while writing its figures) leaves --out exactly as the
+    finished run left it, logs included: no folder mixing two runs, no staging leftovers; a fresh
+    --out is not left behind at all."""
     import train.invrender_command as command
 
-    def broken(*args, **kwargs):
-        raise RuntimeError("fit failed")
+    def tree(folder):
+        return {str(path.relative_to(folder)): path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()}
 
-    monkeypatch.setattr(command.FitProblem, "fit", broken)
-    out = tmp_path / "run"
-    with pytest.raises(RuntimeError):
-        command.run_invrender(command.InvRenderConfig(scene=scene_file, out=out, basis="1", iterations=2))
-    assert not list(out.glob(".tensorboard.*")) and not (out / "tensorboard").exists()
+    out, fresh = tmp_path / "run", tmp_path / "fresh"
+    command.run_invrender(command.InvRenderConfig(scene=scene_file, out=out, basis="1", iterations=2))
+    before = tree(out)
+    assert any(name.startswith("tensorboard/events") for name in before)
+    write_png = command.write_png
+
+    def broken(path, image):
+        write_png(path, image)
+        raise RuntimeError("disk failed")
+
+    monkeypatch.setattr(command, "write_png", broken)
+    for folder in (out, fresh):
+        with pytest.raises(RuntimeError):
+            command.run_invrender(command.InvRenderConfig(scene=scene_file, out=folder, basis="1", iterations=3, seed=9))
+    assert tree(out) == before and sorted(path.name for path in out.iterdir() if path.name.startswith(".")) == []
+    assert not fresh.exists()
+
+
+def test_run_invrender_refuses_a_tensorboard_folder_it_did_not_write(tmp_path, scene_file):
+    from train.invrender_command import InvRenderConfig, run_invrender
+
+    for name, make in (("logs", lambda board: (board / "train").mkdir(parents=True)), ("file", lambda board: board.write_text("x"))):
+        board = tmp_path / name / "tensorboard"
+        board.parent.mkdir()
+        make(board)
+        with pytest.raises(InputError, match="was not written by displex invrender"):
+            run_invrender(InvRenderConfig(scene=scene_file, out=board.parent, basis="1", iterations=2))
+    assert (tmp_path / "logs" / "tensorboard" / "train").is_dir()
 
 
 def test_run_invrender_missing_scene_raises(tmp_path):

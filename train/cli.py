@@ -13,9 +13,11 @@ from pathlib import Path
 
 from capture_sim.atomic import check_output_folder, refuse_overwriting
 from capture_sim.errors import DisplexWarning, InputError, check_thread_count
-from capture_sim.rig import DEFAULT_RIG
+from capture_sim.rig import DEFAULT_RIG, rig_file
 
 NOISE_CHOICES = ("off", "default")
+NOISE_HELP = "'default': the rig's Poisson-Gaussian noise and quantisation; 'off': an ideal sensor (clipping stays)"
+RIG_HELP = f"rig preset or TOML path (default {DEFAULT_RIG})"
 EXPOSURE_HELP = "'rig' (default: the rig's exposure setting, auto for the presets), 'auto' or a positive gain"
 
 
@@ -110,8 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     synth = scenes.add_parser("synth", help="write the default synthetic scene set (train/ and test/ splits)")
     synth.add_argument("--out", type=_path, required=True, help="output folder")
     synth.add_argument("--size", type=_size, default=(128, 153), help="image size HxW (default 128x153; full 512x612)")
-    synth.add_argument("--seed", type=int, default=0)
-    synth.add_argument("--rig", default=DEFAULT_RIG, help="rig preset or TOML path")
+    synth.add_argument("--seed", type=int, default=0, help="seed of the scene set (shapes, materials, textures)")
+    synth.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
     synth.add_argument("--cast-shadows", action="store_true", help="trace cast shadows (slower)")
     synth.set_defaults(handler=_scenes_synth)
 
@@ -119,10 +121,10 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("--scene", type=_path, required=True, help="scene file (.npz)")
     simulate.add_argument("--patterns", type=_path, required=True, help="pattern file .npz or .npy")
     simulate.add_argument("--out", type=_path, required=True, help="output folder: captures.npy, 16-bit PNGs, contact sheet, meta.json")
-    simulate.add_argument("--noise", choices=NOISE_CHOICES, default="default")
+    simulate.add_argument("--noise", choices=NOISE_CHOICES, default="default", help=NOISE_HELP)
     simulate.add_argument("--exposure", default="rig", help=EXPOSURE_HELP)
-    simulate.add_argument("--seed", type=int, default=0)
-    simulate.add_argument("--rig", default=DEFAULT_RIG)
+    simulate.add_argument("--seed", type=int, default=0, help="seed of the simulated noise")
+    simulate.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
     simulate.set_defaults(handler=_simulate)
 
     patterns = commands.add_parser("patterns", help="heuristic pattern families").add_subparsers(dest="patterns_command", required=True)
@@ -132,7 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
     make.add_argument("--out", type=_pattern_output, required=True, help="pattern file to write (.npz)")
     make.add_argument("--preset", default="default", help="'default' (off level 0) or 'ddps' (published 0.1/0.9 levels)")
     make.add_argument("--seed", type=int, default=0, help="seed of the random families")
-    make.add_argument("--rig", default=DEFAULT_RIG)
+    make.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
     make.set_defaults(handler=_patterns_make)
     listing = patterns.add_parser("list", help="list families and their parameters")
     listing.add_argument("--M", type=int, default=4, dest="num_patterns", help="pattern count whose parameters are listed (default: 4)")
@@ -142,10 +144,10 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--scenes", type=_path, nargs="+", default=(), help="scene files or folders (default: synthetic test split)")
     evaluate.add_argument("--patterns", type=_patterns_or_olat, required=True, help="pattern file, or 'olat' for the full OLAT stack")
     evaluate.add_argument("--method", choices=("ps", "woodham"), default="ps")
-    evaluate.add_argument("--noise", choices=NOISE_CHOICES, default="default")
+    evaluate.add_argument("--noise", choices=NOISE_CHOICES, default="default", help=NOISE_HELP)
     evaluate.add_argument("--exposure", default="rig", help=EXPOSURE_HELP)
-    evaluate.add_argument("--rig", default=DEFAULT_RIG)
-    evaluate.add_argument("--seed", type=int, default=0)
+    evaluate.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
+    evaluate.add_argument("--seed", type=int, default=0, help="seed of the simulated noise")
     evaluate.add_argument("--json", type=_path, default=None, help="write results JSON here")
     evaluate.add_argument("--out", type=_path, default=None, help="folder for normal maps, error maps, summary figure")
     evaluate.set_defaults(handler=_evaluate)
@@ -187,7 +189,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     export = commands.add_parser("export", help="write display frames, manifest and contact sheet for the rig")
     export.add_argument("--patterns", type=_path, required=True)
-    export.add_argument("--rig", default=DEFAULT_RIG)
+    export.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
     export.add_argument("--out", type=_path, required=True, help="output folder for the frames, manifest.json and contact sheet")
     export.add_argument("--bit-depth", type=int, choices=(8, 16), default=8)
     export.add_argument("--olat", action="store_true", help="also write the OLAT capture sequence (K frames, black, white)")
@@ -203,16 +205,16 @@ def build_parser() -> argparse.ArgumentParser:
     invrender.add_argument("--patterns", type=_patterns_or_olat, default="olat", help="pattern file, or 'olat' (fit on 5/6 of the OLAT images)")
     invrender.add_argument("--basis", default="auto", help="number of basis BRDFs J, or 'auto' (model selection)")
     invrender.add_argument("--iterations", type=int, default=None, help="Adam steps of the final fit (default 400)")
-    invrender.add_argument("--noise", choices=NOISE_CHOICES, default="default")
-    invrender.add_argument("--exposure", default="rig", help=EXPOSURE_HELP + " (pattern captures; OLAT captures use auto)")
-    invrender.add_argument("--seed", type=int, default=0)
-    invrender.add_argument("--rig", default=DEFAULT_RIG)
+    invrender.add_argument("--noise", choices=NOISE_CHOICES, default="default", help=NOISE_HELP)
+    invrender.add_argument("--exposure", default="rig", help=EXPOSURE_HELP + " (with --patterns; OLAT captures are always auto-exposed)")
+    invrender.add_argument("--seed", type=int, default=0, help="seed of the simulated noise")
+    invrender.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
     # The global --threads, also accepted here (older command lines). SUPPRESS: without this flag a
     # global value stands (a subcommand default would overwrite it).
     invrender.add_argument("--threads", type=_thread_count, default=argparse.SUPPRESS, dest="torch_threads", metavar="T",
                            help="same as `displex --threads T invrender ...`")
-    invrender.add_argument("--json", type=_path, default=None)
-    invrender.add_argument("--out", type=_path, default=None)
+    invrender.add_argument("--json", type=_path, default=None, help="write the result JSON here")
+    invrender.add_argument("--out", type=_path, default=None, help="folder for normals, basis weights, figures, result.json, config.json and TensorBoard logs")
     invrender.set_defaults(handler=_invrender)
 
     demo = commands.add_parser("demo", help="the main job: scenes, learning, search, comparison, report and charts")
@@ -358,8 +360,12 @@ def _invrender(args) -> None:
 
     if args.out is not None:
         check_output_folder(args.out, "invrender")
-    outputs = [("--json", args.json), *((f"--out file {name}", None if args.out is None else args.out / name) for name in OUTPUT_FILES)]
-    refuse_overwriting(outputs, [("--scene", args.scene), ("--patterns file", None if args.patterns == "olat" else args.patterns)])
+    json_path = args.json
+    if json_path is not None and args.out is not None and json_path.resolve() == (args.out / "result.json").resolve():
+        json_path = None  # the same document as --out's result.json
+    outputs = [("--json", json_path), *((f"--out file {name}", None if args.out is None else args.out / name) for name in OUTPUT_FILES)]
+    refuse_overwriting(outputs, [("--scene", args.scene), ("--patterns file", None if args.patterns == "olat" else args.patterns),
+                                 ("--rig file", rig_file(args.rig))])
     changes = dict(scene=args.scene, patterns=args.patterns, basis=args.basis, noise=args.noise, seed=args.seed, rig=args.rig, json=args.json, out=args.out,
                    threads=args.torch_threads, exposure=args.exposure)  # already applied by _run; recorded in config.json
     if args.iterations is not None:

@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 from capture_sim.atomic import refuse_overwriting, save_npy, staged_files, write_json
 from capture_sim.errors import DisplexWarning, InputError
-from capture_sim.rig import DEFAULT_RIG, load_rig
+from capture_sim.rig import DEFAULT_RIG, load_rig, rig_file
 from patterns.io import check_patterns_match_rig, load_patterns
 from train.evaluate import EvalSettings, error_map, evaluate_scene, masked_map
 from train.figures import image_grid, normal_panel, save_figure
@@ -65,7 +65,8 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
     json_path = config.json
     if json_path is not None and config.out is not None and Path(json_path).resolve() == (Path(config.out) / "results.json").resolve():
         json_path = None  # the same document as --out's results.json
-    inputs = [("scene file", file) for file in files] + [("pattern file", None if config.patterns == "olat" else config.patterns)]
+    inputs = [("scene file", file) for file in files] + [("pattern file", None if config.patterns == "olat" else config.patterns),
+                                                          ("rig file", rig_file(config.rig))]
     refuse_overwriting([("--json", json_path), *_out_files(config.out, files)], inputs)
     with contextlib.ExitStack() as stack:
         # Files for --out are staged and land together at the end: a failure part-way (a bad

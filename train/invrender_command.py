@@ -15,6 +15,7 @@ never used for any decision.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -29,7 +30,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import save_npy, write_json
+from capture_sim.atomic import save_npy, staged_files, write_json
 from capture_sim.errors import DisplexWarning, InputError, check_seed, check_thread_count
 from capture_sim.geometry import pixel_rays
 from capture_sim.png import write_png
@@ -181,19 +182,24 @@ def _prepare_data(config: InvRenderConfig, scene, rig, pixels, split) -> _Data:
     return _Data(captures, emission, exposure, olat_exposure, olat_captures, test_truth, describe)
 
 
-class _TensorBoard:
-    """A SummaryWriter writing into a temporary folder that replaces ``out/tensorboard`` on close."""
+TENSORBOARD_FOLDER = "tensorboard"
+TENSORBOARD_MARKER = ".displex-invrender"
+"""A file inside ``--out``'s tensorboard folder saying that invrender wrote it (so a rerun may
+replace it; a tensorboard folder of other logs is refused)."""
 
-    def __init__(self, out: Path | None):
-        self.writer, self.final, self.staging = None, None, None
-        if out is None:
+
+class _TensorBoard:
+    """A SummaryWriter writing into ``folder/tensorboard`` (the staged ``--out``), or nothing."""
+
+    def __init__(self, folder: Path | None):
+        self.writer = None
+        if folder is None:
             return
         from torch.utils.tensorboard import SummaryWriter
 
-        out.mkdir(parents=True, exist_ok=True)
-        self.final = out / "tensorboard"
-        self.staging = Path(tempfile.mkdtemp(prefix=".tensorboard.", dir=out))
-        self.writer = SummaryWriter(log_dir=str(self.staging))
+        (folder / TENSORBOARD_FOLDER).mkdir()
+        (folder / TENSORBOARD_FOLDER / TENSORBOARD_MARKER).write_text("written by displex invrender\n")
+        self.writer = SummaryWriter(log_dir=str(folder / TENSORBOARD_FOLDER))
 
     def scalars(self, prefix: str, step: int, values: dict) -> None:
         if self.writer is not None:
@@ -201,20 +207,18 @@ class _TensorBoard:
                 self.writer.add_scalar(f"{prefix}/{key}", value, step)
 
     def close(self) -> None:
-        if self.writer is None:
-            return
-        self.writer.close()
-        if self.final.exists():
-            shutil.rmtree(self.final)
-        self.staging.rename(self.final)  # one rename: readers never see a half-written run
-        self.writer = None
-
-    def discard(self) -> None:
-        """Drop the staged logs of a run that failed."""
         if self.writer is not None:
             self.writer.close()
-            shutil.rmtree(self.staging, ignore_errors=True)
             self.writer = None
+
+
+def check_out_folder(out: Path) -> None:
+    """Refuse, before any work, an ``--out`` whose tensorboard folder invrender did not write (a
+    rerun replaces it whole) or that is not a folder."""
+    board = out / TENSORBOARD_FOLDER
+    if board.exists() and not (board.is_dir() and (board / TENSORBOARD_MARKER).is_file()):
+        raise InputError(f"{board} exists and was not written by displex invrender (a rerun replaces that folder); "
+                         "choose another --out or move it")
 
 
 def run_invrender(config: InvRenderConfig, progress: bool = True) -> dict:
@@ -232,6 +236,8 @@ def run_invrender(config: InvRenderConfig, progress: bool = True) -> dict:
         ``normal_error``, ``relighting``, ``basis_brdfs``, ``timings``, ``data`` and ``config``.
     """
     config.validate()
+    if config.out is not None:
+        check_out_folder(Path(config.out))
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(config.threads or previous_threads)
     try:
@@ -250,15 +256,23 @@ def _run(config: InvRenderConfig, progress: bool) -> dict:
     data = _prepare_data(config, scene, rig, pixels, split)
     timings["data"] = time.perf_counter() - start
     grid = {"pixel_index": pixels.transport.pixel_index, "height": scene.height, "width": scene.width}
-    board = _TensorBoard(None if config.out is None else Path(config.out))
-    try:
-        output = _fit_and_evaluate(config, scene, pixels, split, data, grid, board, timings, start, cpu_start, progress)
-    except BaseException:
-        board.discard()
-        raise
-    board.close()
-    if config.json is not None:
-        write_json(config.json, output)
+    out = None if config.out is None else Path(config.out)
+    with contextlib.ExitStack() as stack:
+        # --out's files and TensorBoard logs are staged and replace an earlier run's together at
+        # the end: a failure or Ctrl-C part-way never leaves a folder mixing two runs.
+        staging = None if out is None else stack.enter_context(staged_files(out))
+        board = _TensorBoard(staging)
+        try:
+            output = _fit_and_evaluate(config, scene, pixels, split, data, grid, board, timings, start, cpu_start, progress, staging)
+        finally:
+            board.close()
+        if config.json is not None:
+            write_json(config.json, output)
+        if out is not None:  # what the staged files do not replace: an earlier run's logs and selection chart
+            shutil.rmtree(out / TENSORBOARD_FOLDER, ignore_errors=True)
+            for name in OUTPUT_FILES:
+                if not (staging / name).exists():
+                    (out / name).unlink(missing_ok=True)
     return output
 
 
@@ -268,8 +282,9 @@ OUTPUT_FILES = ("normals.npy", "normals.png", "normals_figure.png", "weights.npy
 
 
 def _fit_and_evaluate(config: InvRenderConfig, scene, pixels, split, data: _Data, grid: dict, board: _TensorBoard,
-                      timings: dict, start: float, cpu_start: float, progress: bool) -> dict:
-    """Initial estimate, light model, basis selection, final fit, evaluation and outputs."""
+                      timings: dict, start: float, cpu_start: float, progress: bool, out: Path | None) -> dict:
+    """Initial estimate, light model, basis selection, final fit, evaluation and the outputs (into
+    ``out``, the staged ``--out``, if given)."""
     num_lights = pixels.transport.num_lights
     pixel_index, height, width = grid["pixel_index"], grid["height"], grid["width"]
     points, lights, falloff = pixels.points.float(), pixels.lights().float(), pixels.rig.falloff
@@ -350,8 +365,8 @@ def _fit_and_evaluate(config: InvRenderConfig, scene, pixels, split, data: _Data
         "threads": torch.get_num_threads(),
         "config": config.to_dict(),
     }
-    if config.out is not None:
-        _write_outputs(Path(config.out), output, config, result, relit, data, split, pixels, selection, scene)
+    if out is not None:
+        _write_outputs(out, output, config, result, relit, data, split, pixels, selection, scene)
     return output
 
 
@@ -414,10 +429,8 @@ def _write_outputs(out: Path, output: dict, config, result: InverseRenderResult,
     save_figure(fig, out / "weights.png")
     _brdf_spheres(out / "brdf_spheres.png", result, pixels.rig)
     _relit_figure(out / "relit.png", relit, data.test_truth, split.test, transport, output, mask_box(scene.mask))
-    if selection is not None:
+    if selection is not None:  # without one, an earlier --basis auto run's chart goes (``_run``)
         _selection_chart(out / "model_selection.png", selection, config.selection)
-    else:  # an earlier --basis auto run's chart would contradict this result.json
-        (out / "model_selection.png").unlink(missing_ok=True)
     write_json(out / "config.json", config.to_dict())
     write_json(out / "result.json", output)
 

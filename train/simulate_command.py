@@ -13,7 +13,7 @@ import torch
 from capture_sim.atomic import check_output_folder, refuse_overwriting, save_npy, write_json
 from capture_sim.errors import InputError, check_seed
 from capture_sim.png import write_png
-from capture_sim.rig import DEFAULT_RIG, Rig, load_rig
+from capture_sim.rig import DEFAULT_RIG, Rig, load_rig, rig_file
 from capture_sim.scene import Scene, load_scene, rig_for_scene
 from capture_sim.simulator import auto_exposure, display_emission, light_transport, noise_free_radiance, simulate
 from patterns.io import check_patterns_match_rig, load_patterns
@@ -92,7 +92,7 @@ def run_simulate(config: SimulateConfig) -> dict:
     names = [f"capture_{index:03d}.png" for index in range(len(pattern_values))]
     # Every output is checked before any is written: a bad one must not leave a half-replaced run.
     refuse_overwriting([("output", out / name) for name in ("captures.npy", "meta.json", "contact_sheet.png", *names)],
-                       [("scene file", config.scene), ("pattern file", config.patterns)])
+                       [("scene file", config.scene), ("pattern file", config.patterns), ("rig file", rig_file(config.rig))])
     setting = parse_exposure(str(config.exposure), rig)
     exposure = resolve_exposure(setting, patterns, scene, rig)
     noise_free = config.noise == "off"
