@@ -242,12 +242,13 @@ def test_reexport_removes_stale_frames_and_bad_inputs_are_refused(tmp_path, smal
 def test_export_keeps_frame_files_it_did_not_write(tmp_path, small_rig):
     from patterns.export import EXPORT_MARKER
 
-    mine = tmp_path / "user"
-    mine.mkdir()
-    (mine / "olat_000.png").write_bytes(b"the user's own image")
-    with pytest.raises(InputError, match="not an export folder"):
-        export_frames(_patterns(small_rig, 1), small_rig, mine)
-    assert (mine / "olat_000.png").read_bytes() == b"the user's own image"
+    for name in ("olat_000.png", "contact_sheet.png"):  # either marks a folder as the user's
+        mine = tmp_path / f"user_{name}"
+        mine.mkdir()
+        (mine / name).write_bytes(b"the user's own image")
+        with pytest.raises(InputError, match="not an export folder"):
+            export_frames(_patterns(small_rig, 1), small_rig, mine)
+        assert (mine / name).read_bytes() == b"the user's own image"
     interrupted = tmp_path / "interrupted"  # an export stopped before its manifest: frames and the marker
     interrupted.mkdir()
     (interrupted / EXPORT_MARKER).write_text("export in progress\n")
@@ -331,15 +332,8 @@ def test_a_failed_re_export_leaves_the_earlier_export_whole(tmp_path, small_rig,
 
 
 def test_export_refusals_and_unlisted_frames(tmp_path, small_rig):
-    """A user's contact_sheet.png marks a foreign folder; a rig without panel_pixels, a float bit
-    depth and a bad compression level are refused; import refuses frame files the manifest does
-    not list (a rig playing the folder would show them)."""
-    mine = tmp_path / "user"
-    mine.mkdir()
-    (mine / "contact_sheet.png").write_bytes(b"my own sheet")
-    with pytest.raises(InputError, match="not an export folder"):
-        export_frames(_patterns(small_rig, 1), small_rig, mine)
-    assert (mine / "contact_sheet.png").read_bytes() == b"my own sheet"
+    """A rig without panel_pixels, a float bit depth and a bad compression level are refused;
+    import refuses frame files the manifest does not list (a rig playing the folder would show them)."""
     with pytest.raises(InputError, match="gives no display panel_pixels"):
         export_frames(_patterns(small_rig, 1), small_rig.replace(panel_pixels=None), tmp_path / "a")
     with pytest.raises(InputError, match="bit depth must be 8 or 16, got 8.0"):
