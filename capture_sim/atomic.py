@@ -37,6 +37,14 @@ def refuse_overwriting(outputs, inputs) -> None:
         seen[resolved] = what
 
 
+def separate_json(json_path: str | Path | None, out: str | Path | None, name: str) -> Path | None:
+    """``json_path`` as a Path, or None when it is the file ``name`` that the output folder ``out``
+    receives anyway: the same document, not a second output to check or write."""
+    if json_path is None or (out is not None and Path(json_path).resolve() == (Path(out) / name).resolve()):
+        return None
+    return Path(json_path)
+
+
 def check_replaceable(path: str | Path) -> None:
     """Raise ``InputError`` if ``path`` exists and is not a regular file (a rename would silently
     replace a device, FIFO or socket, e.g. /dev/null run as root, and a folder would fail with the

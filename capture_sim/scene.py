@@ -209,7 +209,11 @@ def scene_paths(paths) -> list[Path]:
 def file_fingerprints(paths) -> list[list]:
     """[absolute path, size in bytes, modification time in ns] of each file: what a run records of
     the files it was made from, so that a file rewritten or replaced since is noticed."""
-    return [[str(Path(path).resolve()), Path(path).stat().st_size, Path(path).stat().st_mtime_ns] for path in paths]
+    fingerprints = []
+    for path in paths:
+        status = Path(path).stat()
+        fingerprints.append([str(Path(path).resolve()), status.st_size, status.st_mtime_ns])
+    return fingerprints
 
 
 LIGHT_MISMATCH_M = 0.01

@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import math
 import numbers
-from fractions import Fraction
 from dataclasses import dataclass
+from fractions import Fraction
 
 import numpy as np
 import torch

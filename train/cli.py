@@ -11,7 +11,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from capture_sim.atomic import check_output_folder, refuse_overwriting
+from capture_sim.atomic import check_output_folder, refuse_overwriting, separate_json
 from capture_sim.errors import DisplexWarning, InputError, check_thread_count
 from capture_sim.rig import DEFAULT_RIG, rig_file
 
@@ -360,10 +360,7 @@ def _invrender(args) -> None:
 
     if args.out is not None:
         check_output_folder(args.out, "invrender")
-    json_path = args.json
-    if json_path is not None and args.out is not None and json_path.resolve() == (args.out / "result.json").resolve():
-        json_path = None  # the same document as --out's result.json
-    outputs = [("--json", json_path), *((f"--out file {name}", None if args.out is None else args.out / name) for name in OUTPUT_FILES)]
+    outputs = [("--json", separate_json(args.json, args.out, "result.json")), *((f"--out file {name}", None if args.out is None else args.out / name) for name in OUTPUT_FILES)]
     refuse_overwriting(outputs, [("--scene", args.scene), ("--patterns file", None if args.patterns == "olat" else args.patterns),
                                  ("--rig file", rig_file(args.rig))])
     changes = dict(scene=args.scene, patterns=args.patterns, basis=args.basis, noise=args.noise, seed=args.seed, rig=args.rig, json=args.json, out=args.out,
@@ -447,7 +444,6 @@ def _patterns_list(args) -> None:
 
     if args.num_patterns < 1:
         raise InputError(f"--M must be at least 1, got {args.num_patterns}")
-
     for name, family in FAMILIES.items():
         if not family.supports(args.num_patterns):
             print(f"{name:<20} (not defined for M={args.num_patterns}) {family.summary}")

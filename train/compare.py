@@ -36,7 +36,7 @@ from tqdm import tqdm
 from capture_sim.atomic import write_json
 from capture_sim.display import display_emission
 from capture_sim.errors import DisplexWarning, InputError, check_seed
-from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, Rig, load_rig
+from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, Rig, load_rig, rig_file
 from capture_sim.scene import file_fingerprints, scene_paths
 from capture_sim.synth import GENERATOR
 from capture_sim.toml_io import load_toml
@@ -350,7 +350,7 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
         for key in ("train_scenes", "test_scenes"):
             if key in values:
                 values[key] = [_resolve(path, root) for path in values[key]]
-        if isinstance(values.get("rig"), str) and values["rig"].endswith(".toml"):  # a preset name stays a name
+        if isinstance(values.get("rig"), str) and rig_file(values["rig"]):  # a preset name stays a name
             values["rig"] = _resolve(values["rig"], root)
         if isinstance(values.get("out"), str) and values["out"].strip():  # a blank one is refused as such
             values["out"] = _resolve(values["out"], root)

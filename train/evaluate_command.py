@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import refuse_overwriting, save_npy, staged_files, write_json
+from capture_sim.atomic import refuse_overwriting, save_npy, separate_json, staged_files, write_json
 from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import DEFAULT_RIG, load_rig, rig_file
 from patterns.io import check_patterns_match_rig, load_patterns
@@ -62,9 +62,7 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
     if config.out is not None:
         _refuse_clashing_outputs(files)
     # Every output is checked before the work: none may replace an input or another output.
-    json_path = config.json
-    if json_path is not None and config.out is not None and Path(json_path).resolve() == (Path(config.out) / "results.json").resolve():
-        json_path = None  # the same document as --out's results.json
+    json_path = separate_json(config.json, config.out, "results.json")
     inputs = [("scene file", file) for file in files] + [("pattern file", None if config.patterns == "olat" else config.patterns),
                                                           ("rig file", rig_file(config.rig))]
     refuse_overwriting([("--json", json_path), *_out_files(config.out, files)], inputs)

@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from capture_sim.atomic import atomic_path, exclusive_output, write_json
 from capture_sim.errors import InputError, check_seed
-from capture_sim.rig import DEFAULT_RIG, load_rig
+from capture_sim.rig import DEFAULT_RIG, load_rig, rig_file
 from capture_sim.scene import file_fingerprints, scene_paths
 from patterns.families import FAMILIES, get_family, make_patterns
 from patterns.io import check_patterns_match_rig, load_patterns, save_patterns
@@ -312,7 +312,7 @@ def checkpoint_identity(config: TrainConfig) -> dict:
         scenes=tuple(absolute(name) for name in config.scenes),
         val_scenes=tuple(absolute(name) for name in config.val_scenes),
         init=absolute(config.init) if names_pattern_file(config.init) else config.init,
-        rig=absolute(config.rig) if Path(config.rig).suffix == ".toml" else config.rig,
+        rig=absolute(config.rig) if rig_file(config.rig) else config.rig,
     ))
     init_file = [config.init] if names_pattern_file(config.init) else []
     identity["input_files"] = file_fingerprints([*scene_paths((*config.scenes, *config.val_scenes)), *init_file])

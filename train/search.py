@@ -503,8 +503,9 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
     ``<out stem>.trace.png`` (objective against evaluation index) and ``<out stem>.config.json``;
     TensorBoard scalars under ``logdir`` if given. While it runs, every 10 evaluations go to
     ``<out stem>.trace.partial.csv`` (a stale one from an earlier run is removed when the
-    evaluations start, after every input was checked); a finished search removes it, and a search interrupted during its evaluations
-    (Ctrl-C, an error) leaves it and writes none of the other files.
+    evaluations start, after every input was checked); a finished search removes it, and a search
+    interrupted during its evaluations (Ctrl-C, an error) leaves it and writes none of the other
+    files.
 
     Args:
         config: search settings.
