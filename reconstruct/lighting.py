@@ -202,7 +202,14 @@ class LightField:
             return _take_rows(self.weights, rows)
         return self._lit(rows, normal).mul_(_take_rows(self.weights, rows))
 
-    def vector_blocks(self, index, normal: torch.Tensor, lighting: torch.Tensor, whole: torch.Tensor | None = None):
+    def unlit_weights(self, rows, normal: torch.Tensor) -> torch.Tensor:
+        """(n, K) (1 - s_k) f_k / d_k of pixels ``rows`` (slice or indices) with normals (3, n):
+        the weights of the lights behind each pixel's tangent plane (``shadowed_weights`` plus
+        these are the stored weights)."""
+        return self._lit(rows, normal).sub_(1).mul_(_take_rows(self.weights, rows)).neg_()
+
+    def vector_blocks(self, index, normal: torch.Tensor, lighting: torch.Tensor, whole: torch.Tensor | None = None,
+                      out: torch.Tensor | None = None):
         """Effective lighting vectors with the attached shadows of the given normals, by blocks.
 
         Args:
@@ -210,6 +217,8 @@ class LightField:
             normal: (3, n) normals of those pixels.
             lighting: (K, 12 M) lighting matrix from ``lighting_matrix`` (used as a constant).
             whole: optional (n,) ``sees_all(index, normal)``, if the caller has it already.
+            out: optional (M, 3, 3, n) tensor that receives the vectors of all blocks (the yielded
+                blocks are views of it), so a caller that keeps them copies nothing.
 
         Yields:
             (start, stop, vectors): the block covers entries start:stop of ``index``; vectors
@@ -230,7 +239,9 @@ class LightField:
             # Pixels last and contiguous, as the per-pixel algebra wants them (on the mm's
             # pixel-major output it runs several times slower).
             summed = summed.T.contiguous().view(-1, 3, 4, stop - start)
-            yield start, stop, summed[:, :, :3] - _take_rows(self.points, rows).T[None, None] * summed[:, :, 3:]
+            vectors = summed.new_empty((summed.shape[0], 3, 3, stop - start)) if out is None else out[..., start:stop]
+            torch.mul(_take_rows(self.points, rows).T[None, None], summed[:, :, 3:], out=vectors)
+            yield start, stop, torch.sub(summed[:, :, :3], vectors, out=vectors)
 
 
 def _take_rows(values: torch.Tensor, rows) -> torch.Tensor:
@@ -362,23 +373,28 @@ class _ShadowedLighting(torch.autograd.Function):
     @staticmethod
     def forward(ctx, lighting, values, field, normal, whole):
         ctx.field, ctx.normal, ctx.whole = field, normal, whole
-        return values.clone()
+        return values  # autograd returns an input as a view of it: no copy
 
     @staticmethod
     def backward(ctx, grad_vectors):
         field, normal = ctx.field, ctx.normal
         # b = S[:3] - X S[3] with S = (w G)^T, so dL/dS[:3] = dL/db and dL/dS[3] = -X . dL/db,
-        # written into one buffer (a cat of the two parts copies twice as much).
+        # written into one buffer: the products below then read the (N, K) weights once.
         grad_summed = grad_vectors.new_empty((*grad_vectors.shape[:2], 4, field.num_pixels))
         grad_summed[:, :, :3] = grad_vectors
         x, y, z = field.points.T
         torch.mul(grad_vectors[:, :, 0], x, out=grad_summed[:, :, 3]).addcmul_(grad_vectors[:, :, 1], y).addcmul_(grad_vectors[:, :, 2], z).neg_()
         grad_summed = grad_summed.view(-1, field.num_pixels)  # (12 M, N)
-        grad_lighting = torch.zeros((field.lights.shape[0], grad_summed.shape[0]), dtype=grad_vectors.dtype)
+        # Every pixel as if it saw every light (one product over the stored weights), minus the
+        # lights behind the tangent planes of the pixels that do not: their shadow masks are
+        # formed and nobody else's (the pixels are mixed, so blocks of the whole set would
+        # almost all need them).
+        grad_lighting = torch.mm(field.weights.T, grad_summed.T)  # (K, 12 M)
         whole = field.sees_all(None, normal) if ctx.whole is None else ctx.whole
-        for start, stop, rows in field.cache_rows(None):
-            weight = field.shadowed_weights(rows, normal[:, start:stop], whole[start:stop])
-            grad_lighting.addmm_(weight.T, grad_summed[:, start:stop].T)
+        shadowed = torch.nonzero(~whole).squeeze(1)
+        for start, stop, rows in field.cache_rows(shadowed):
+            unlit = field.unlit_weights(rows, normal.index_select(1, rows))
+            grad_lighting.addmm_(unlit.T, grad_summed.index_select(1, rows).T, alpha=-1)
         return grad_lighting, None, None, None, None
 
 
@@ -418,9 +434,12 @@ class _LightingMoments(torch.autograd.Function):
     would allocate a full-size gradient per slice and be ~10x slower."""
 
     @staticmethod
-    def forward(ctx, vectors, captures, weight):
+    def forward(ctx, vectors, captures, weight, known):
         ctx.save_for_backward(vectors, captures, weight)
+        ctx.set_materialize_grads(False)  # an unused output (the unrolled solver's energy) costs nothing
         count = vectors.shape[-1]
+        if known is not None:  # clones: the outputs get this node as their history
+            return known[0].clone(), known[1].clone(), (weight * captures * captures).sum(0)
         if count <= MOMENT_BLOCK:
             return _moments_forward(vectors, captures, weight)
         outputs = (vectors.new_empty((3, 6, count)), vectors.new_empty((3, 3, count)), vectors.new_empty((3, count)))
@@ -432,16 +451,16 @@ class _LightingMoments(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_moment, grad_projection, grad_energy):
         vectors, captures, weight = ctx.saved_tensors
-        count = vectors.shape[-1]
-        if count <= MOMENT_BLOCK:
-            return (*_moments_backward(vectors, captures, weight, grad_moment, grad_projection, grad_energy), None)
         grad_vectors, grad_captures = torch.empty_like(vectors), torch.empty_like(captures)
-        for block in _pixel_blocks(count):
-            grads = _moments_backward(
-                vectors[..., block], captures[..., block], weight[..., block], grad_moment[..., block], grad_projection[..., block], grad_energy[..., block]
+        if grad_projection is None:
+            grad_projection = torch.zeros((3, 3, vectors.shape[-1]), dtype=vectors.dtype)
+        for block in _pixel_blocks(vectors.shape[-1]):
+            _moments_backward(
+                vectors[..., block], captures[..., block], weight[..., block],
+                None if grad_moment is None else grad_moment[..., block], grad_projection[..., block],
+                None if grad_energy is None else grad_energy[..., block], grad_vectors[..., block], grad_captures[..., block],
             )
-            grad_vectors[..., block], grad_captures[..., block] = grads
-        return grad_vectors, grad_captures, None
+        return grad_vectors, grad_captures, None, None
 
 
 MOMENT_BLOCK = 8192
@@ -452,22 +471,29 @@ def _pixel_blocks(count: int):
     return (slice(start, min(start + MOMENT_BLOCK, count)) for start in range(0, count, MOMENT_BLOCK))
 
 
-def _moments_backward(vectors, captures, weight, grad_moment, grad_projection, grad_energy):
+_FULL_SYMMETRIC = torch.tensor([0, 3, 4, 3, 1, 5, 4, 5, 2])
+"""Entries of SYMMETRIC_PAIRS at the 9 places (row-major) of the full symmetric matrix."""
+_DIAGONAL_TWICE = torch.tensor([2.0, 1, 1, 1, 2, 1, 1, 1, 2])[:, None]
+
+
+def _moments_backward(vectors, captures, weight, grad_moment, grad_projection, grad_energy, grad_vectors, grad_captures):
+    """Writes dL/db into ``grad_vectors`` (M, 3, 3, n) and dL/dI into ``grad_captures`` (M, 3, n);
+    ``grad_moment`` and ``grad_energy`` may be None (the output was not used)."""
     # dB_c/db: d(b_i b_j)/db_i = b_j, so dL/db_i = q sum_j S_ij b_j with S the symmetric
     # gradient (diagonal entries doubled); dr_c/db_i = q I; dr_c/dI = q b; d(q I^2)/dI = 2 q I.
-    xx, yy, zz, xy, xz, yz = grad_moment.unbind(1)
-    symmetric = torch.stack(
-        [torch.stack([2 * xx, xy, xz], 1), torch.stack([xy, 2 * yy, yz], 1), torch.stack([xz, yz, 2 * zz], 1)], 1
-    )  # (3 c, 3 i, 3 j, N)
-    grad_vectors = grad_projection[None] * captures[:, :, None]
-    for j in range(3):
-        grad_vectors.addcmul_(symmetric[None, :, :, j], vectors[:, :, None, j])
+    torch.mul(grad_projection[None], captures[:, :, None], out=grad_vectors)
+    if grad_moment is not None:
+        symmetric = (grad_moment[:, _FULL_SYMMETRIC] * _DIAGONAL_TWICE.to(grad_moment.dtype)).view(3, 3, 3, -1)  # (3 c, 3 i, 3 j, n)
+        for j in range(3):
+            grad_vectors.addcmul_(symmetric[None, :, :, j], vectors[:, :, None, j])
     grad_vectors *= weight[:, :, None]
-    grad_captures = weight * ((grad_projection[None] * vectors).sum(2) + 2 * grad_energy[None] * captures)
-    return grad_vectors, grad_captures
+    through = (grad_projection[None] * vectors).sum(2)
+    if grad_energy is not None:
+        through.addcmul_(grad_energy[None].expand_as(captures), captures, value=2)
+    torch.mul(weight, through, out=grad_captures)
 
 
-def lighting_moments(lighting_vectors: torch.Tensor, captures: torch.Tensor, equation_weight: torch.Tensor):
+def lighting_moments(lighting_vectors: torch.Tensor, captures: torch.Tensor, equation_weight: torch.Tensor, known=None):
     """Per-channel normal-equation moments of the model I[m, c] = a_c b[m, c] . n.
 
     Args:
@@ -475,6 +501,9 @@ def lighting_moments(lighting_vectors: torch.Tensor, captures: torch.Tensor, equ
         captures: (M, 3, N) captured values.
         equation_weight: (M, 3, N) weight of each equation (0 drops it, e.g. when saturated);
             a constant.
+        known: optional (moment, projection) the caller already formed from these same values
+            without gradient (not checked): they are returned, with gradients, instead of being
+            formed again.
 
     Returns:
         moment: (3, 6, N) symmetric B_c = sum_m q b b^T (channel, entry of SYMMETRIC_PAIRS, pixel).
@@ -483,7 +512,9 @@ def lighting_moments(lighting_vectors: torch.Tensor, captures: torch.Tensor, equ
         Differentiable in ``lighting_vectors`` and ``captures``.
     """
     if torch.is_grad_enabled() and (lighting_vectors.requires_grad or captures.requires_grad):
-        return _LightingMoments.apply(lighting_vectors, captures, equation_weight.detach())
+        return _LightingMoments.apply(lighting_vectors, captures, equation_weight.detach(), known)
+    if known is not None:
+        return known[0], known[1], (equation_weight * captures * captures).sum(0)
     return _moments_forward(lighting_vectors, captures, equation_weight)
 
 

@@ -29,7 +29,8 @@ import torch
 
 from capture_sim.errors import InputError, check_array, check_field_types
 from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, finite_albedo, lighting_matrix, lighting_moments
-from reconstruct.pixel_solve import put_pixels, symmetric_adjugate, symmetric_apply, take_pixels
+from reconstruct.pixel_solve import put_pixels, take_pixels
+from reconstruct.unrolled_alternation import alternate, dot3
 
 
 @dataclass(frozen=True)
@@ -68,54 +69,6 @@ class UnrolledPSConfig:
             raise InputError(f"UnrolledPSConfig.damping must lie in (0, 1], got {self.damping!r}")
 
 
-def _dot3(left: torch.Tensor, right: torch.Tensor) -> torch.Tensor:
-    """Dot product over the size-3 axis -2 of (..., 3, N) tensors (broadcasting); (..., N)."""
-    # unbind, not indexing: the backward of one unbind is one stack, while each indexed slice's
-    # backward fills a zero tensor of the whole input.
-    l0, l1, l2 = left.unbind(-2)
-    r0, r1, r2 = right.unbind(-2)
-    return l0 * r0 + l1 * r1 + l2 * r2
-
-
-def _symmetric_direction(system: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
-    """S^-1 rhs up to a positive factor, for symmetric positive definite 3x3 systems S (6, N)
-    (unique entries) and rhs (3, N); (3, N). Callers normalise the result.
-
-    adj(S) rhs is divided by |det(S)|, not det(S): the determinant keeps the result of order one,
-    and its sign, which rounding can make negative in float32, cannot flip the normal.
-    """
-    xx, yy, zz, xy, xz, yz = system.unbind(0)
-    a00, a11, a22, a01, a02, a12 = symmetric_adjugate(xx, yy, zz, xy, xz, yz)
-    det = xx * a00 + xy * a01 + xz * a02
-    adjugate = torch.stack([a00, a11, a22, a01, a02, a12])
-    return symmetric_apply(adjugate, rhs) / det.abs().clamp_min(1e-30)
-
-
-def _alternate(normal, albedo, moments, rhs_moments, damping, steps):
-    """``steps`` albedo/normal alternations.
-
-    Args:
-        normal: (3, N) unit normals; albedo: (3c, N).
-        moments: (3c, 6, N) per-channel B_c = sum_m w b b^T (unique entries).
-        rhs_moments: (3c, 3, N) per-channel r_c = sum_m w I b.
-    """
-    # Relative floor, plus an absolute one well above the dtype's underflow for all-dark inputs.
-    tiny = 1e-12 * moments.detach().abs().amax() + torch.finfo(moments.dtype).tiny ** 0.5
-    for _ in range(steps):
-        quadratic = _dot3(symmetric_apply(moments, normal), normal)  # n^T B_c n: (3c, N)
-        albedo = (_dot3(rhs_moments, normal) / (quadratic + tiny)).clamp_min(0.0)
-        s00, s11, s22, s01, s02, s12 = ((albedo * albedo)[:, None, :] * moments).sum(0).unbind(0)  # (6, N)
-        shift = damping * (s00 + s11 + s22) / 3.0 + 1e-30
-        system = torch.stack([s00 + shift, s11 + shift, s22 + shift, s01, s02, s12])
-        direction = _symmetric_direction(system, (albedo[:, None, :] * rhs_moments).sum(0))
-        # A zero direction (dark pixel) keeps the previous normal: no 0/0 in value or gradient.
-        length2 = _dot3(direction, direction)
-        usable = length2 > 1e-30
-        direction = torch.where(usable, direction, normal.detach())
-        normal = direction * torch.rsqrt(torch.where(usable, length2, torch.ones_like(length2)))
-    return normal, albedo
-
-
 class _ShadowState:
     """Lighting vectors and moments under the current attached-shadow masks, without gradient.
 
@@ -146,8 +99,8 @@ class _ShadowState:
             return values if index is None else take_pixels(values, index)
 
         vectors = normal.new_empty((lighting.shape[1] // 12, 3, 3, stale.shape[0] if index is None else index.numel()))
-        for start, stop, block in field.vector_blocks(index, pick(normal), lighting, pick(whole)):
-            vectors[..., start:stop] = block
+        for _ in field.vector_blocks(index, pick(normal), lighting, pick(whole), out=vectors):
+            pass
         moments, rhs_moments, _ = lighting_moments(vectors, pick(intensity), pick(equation_weight))
         if index is None:
             self.vectors, self.moments, self.rhs_moments = vectors, moments, rhs_moments
@@ -242,15 +195,15 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
         state = _ShadowState(num_pixels)
         for _ in range(config.shadow_iterations):
             state.update(field, normal, lighting, intensity, equation_weight)
-            normal, albedo = _alternate(normal, albedo, state.moments, state.rhs_moments, config.damping, config.alternations)
+            normal, albedo = alternate(normal, albedo, state.moments, state.rhs_moments, config.damping, config.alternations)
         state.update(field, normal, lighting, intensity, equation_weight)
     # Gradients: the final masks' vectors as a function of the lighting (the (pixels x lights)
     # weights are re-formed in the backward pass, not kept), then the moments and alternations.
     vectors = differentiable_vectors(field, normal, lighting, state.vectors, state.whole)
-    moments, rhs_moments, _ = lighting_moments(vectors, intensity, equation_weight)
-    normal, albedo = _alternate(normal, albedo, moments, rhs_moments, config.damping, config.grad_alternations)
+    moments, rhs_moments, _ = lighting_moments(vectors, intensity, equation_weight, known=(state.moments, state.rhs_moments))
+    normal, albedo = alternate(normal, albedo, moments, rhs_moments, config.damping, config.grad_alternations)
     view = field.view.T
     # Return camera-facing normals: a back-facing solution (specular or unconverged pixels) is
     # flipped; its albedo is left as solved.
-    facing = torch.where(_dot3(normal, view) < 0, -1.0, 1.0).to(dtype)
+    facing = torch.where(dot3(normal, view) < 0, -1.0, 1.0).to(dtype)
     return (normal * facing).T, finite_albedo(albedo / scale).T

@@ -5,7 +5,7 @@ import torch
 
 from capture_sim.errors import InputError
 from capture_sim.rig import Falloff, load_rig
-from reconstruct.lighting import LightField, extreme_lights, lighting_matrix, sees_all_lights
+from reconstruct.lighting import LightField, differentiable_vectors, extreme_lights, lighting_matrix, sees_all_lights
 
 
 def test_a_flat_grid_of_lights_has_its_four_corners_as_hull():
@@ -95,3 +95,34 @@ def test_a_field_over_given_weights_gives_the_same_lighting_vectors():
         expected = torch.cat([vectors for _, _, vectors in field.vector_blocks(rows, normal[:, part], lighting)], dim=-1)
         assert expected.shape == (2, 3, 3, 300 if rows is None else 100)
         torch.testing.assert_close(torch.cat(blocks, dim=-1), expected)
+
+
+def test_lighting_vectors_and_their_gradient_match_the_dense_formula():
+    # b[m, c] = sum_k E[m, k, c] s_k f_k / d_k (p_k - X), formed densely, against the blocked
+    # vectors and the hand-written backward (which forms masks only for pixels with lights behind
+    # them), over pixels of both kinds.
+    lights = load_rig().lights(torch.float64)
+    generator = torch.Generator().manual_seed(3)
+    count = 400
+    points = torch.stack([0.1 * torch.randn(count, generator=generator), 0.1 * torch.randn(count, generator=generator), 0.5 + 0.05 * torch.randn(count, generator=generator)], dim=1).double()
+    normal = torch.randn(3, count, generator=generator, dtype=torch.float64)
+    normal[2] = -normal[2].abs() - 1.5  # mostly facing the display
+    normal[:, ::3] = torch.randn(3, (count + 2) // 3, generator=generator, dtype=torch.float64)  # some at any angle
+    normal[2, ::3] = -normal[2, ::3].abs()
+    normal = normal / normal.norm(dim=0)
+    field = LightField(points, lights, Falloff(), 1e-3, block_size=64)
+    whole = field.sees_all(None, normal)
+    assert whole.any() and not whole.all()
+    lighting = torch.rand(lights.shape[0], 24, generator=generator, dtype=torch.float64, requires_grad=True)
+    out = torch.empty(2, 3, 3, count, dtype=torch.float64)
+    for _ in field.vector_blocks(None, normal, lighting, out=out):
+        pass
+    vectors = differentiable_vectors(field, normal, lighting, out)
+    lit = (lights @ normal > (normal * points.T).sum(0)).T.double()  # (N, K)
+    summed = ((lit * field.weights) @ lighting).view(count, 2, 3, 4)
+    dense = (summed[..., :3] - points[:, None, None, :] * summed[..., 3:]).permute(1, 2, 3, 0)
+    torch.testing.assert_close(vectors, dense)
+    upstream = torch.randn(dense.shape, generator=generator, dtype=torch.float64)
+    (grad,) = torch.autograd.grad((vectors * upstream).sum(), lighting)
+    (expected,) = torch.autograd.grad((dense * upstream).sum(), lighting)
+    torch.testing.assert_close(grad, expected)

@@ -7,7 +7,8 @@ from capture_sim.synth import lambertian_sphere
 from reconstruct import lighting as lighting_module
 from reconstruct.lighting import SYMMETRIC_PAIRS, extreme_lights
 from reconstruct.metrics import angular_error_deg
-from reconstruct.unrolled_ps import UnrolledPSConfig, _symmetric_direction, light_reach, solve_ps_unrolled
+from reconstruct.unrolled_alternation import _step, alternate, symmetric_direction
+from reconstruct.unrolled_ps import UnrolledPSConfig, light_reach, solve_ps_unrolled
 from train.scene_pixels import scene_pixels
 
 
@@ -28,10 +29,55 @@ def test_adjugate_solve_matches_linalg():
     rhs = torch.randn(50, 3, dtype=torch.float64, generator=generator)
     rows, cols = zip(*SYMMETRIC_PAIRS)
     unique = system[:, rows, cols].T  # (6, N): the solver's storage of symmetric systems
-    torch.testing.assert_close(_symmetric_direction(unique, rhs.T).T, torch.linalg.solve(system, rhs))
+    torch.testing.assert_close(symmetric_direction(unique, rhs.T).T, torch.linalg.solve(system, rhs))
     # Only |det| is used, so a determinant that rounds negative cannot flip the direction: the
     # adjugate of -S equals that of S, and so does the result.
-    torch.testing.assert_close(_symmetric_direction(-unique, rhs.T), _symmetric_direction(unique, rhs.T))
+    torch.testing.assert_close(symmetric_direction(-unique, rhs.T), symmetric_direction(unique, rhs.T))
+
+
+def _alternation_inputs(count=40, seed=3):
+    generator = torch.Generator().manual_seed(seed)
+    vectors = torch.randn(4, 3, 3, count, dtype=torch.float64, generator=generator)
+    captures = torch.rand(4, 3, count, dtype=torch.float64, generator=generator)
+    captures[:, 0, :5] *= -1  # channel 0 of 5 pixels fits a negative albedo: clamped to 0
+    rows, cols = zip(*SYMMETRIC_PAIRS)
+    moments = torch.einsum("mcin,mcjn->cijn", vectors, vectors)[:, rows, cols]  # (3c, 6, N)
+    rhs = torch.einsum("mcin,mcn->cin", vectors, captures)
+    rhs[:, :, 7] = 0  # a pixel with no light: zero direction, keeps its normal
+    normal = torch.nn.functional.normalize(torch.randn(3, count, dtype=torch.float64, generator=generator), dim=0)
+    return normal, moments, rhs
+
+
+def test_alternation_backward_matches_autograd():
+    # The hand-written backward against autograd through the same steps, over two chained
+    # alternations with clamped albedo and a dark pixel.
+    normal, moments, rhs = _alternation_inputs()
+    weights = torch.randn(2, 3, 40, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    grads = []
+    for hand_written in (True, False):
+        inputs = [value.clone().requires_grad_() for value in (normal, moments, rhs)]
+        if hand_written:
+            new_normal, albedo = alternate(*inputs[:1], None, *inputs[1:], 1e-6, 2)
+        else:
+            tiny = 1e-12 * moments.abs().amax() + torch.finfo(torch.float64).tiny ** 0.5
+            new_normal, albedo, _ = _step(*inputs, 1e-6, tiny)
+            new_normal, albedo, _ = _step(new_normal, *inputs[1:], 1e-6, tiny)
+        ((new_normal * weights[0]).sum() + (albedo * weights[1]).sum()).backward()
+        grads.append([value.grad for value in inputs])
+    assert all(torch.isfinite(grad).all() for grad in grads[0])
+    for hand, auto in zip(*grads):
+        torch.testing.assert_close(hand, auto, rtol=1e-9, atol=1e-12)
+
+
+def test_gradcheck_alternation():
+    # Pixels whose normal moves (a dark one keeps its input normal, detached by design), among
+    # them ones with a clamped albedo channel.
+    normal, moments, rhs = _alternation_inputs()
+    moved = alternate(normal, None, moments, rhs, 1e-6, 2)[1].amax(0) > 0
+    pixels = torch.nonzero(moved).squeeze(1)[:6]
+    assert int(pixels.min()) < 5
+    normal, moments, rhs = (value[..., pixels].clone().requires_grad_() for value in (normal, moments, rhs))
+    assert torch.autograd.gradcheck(lambda *inputs: alternate(inputs[0], None, *inputs[1:], 1e-6, 2), (normal, moments, rhs), eps=1e-6, atol=1e-6)
 
 
 def test_noise_free_sphere_recovers_normals():
