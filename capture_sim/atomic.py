@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -172,9 +173,27 @@ def write_text(path: str | Path, text: str) -> None:
     write_bytes(path, text.encode("utf-8"))
 
 
+def strict_json(obj, **options) -> str:
+    """``json.dumps(obj, **options)`` with every NaN or infinite float (in nested dicts, lists and
+    tuples) written as null: JSON has no token for them, and Python's NaN and Infinity make the
+    file unreadable to other parsers (jq, JavaScript)."""
+    return json.dumps(_finite_or_null(obj), allow_nan=False, **options)
+
+
+def _finite_or_null(value):
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: _finite_or_null(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_null(item) for item in value]
+    return value
+
+
 def write_json(path: str | Path, obj) -> None:
-    """Write ``obj`` as indented JSON to ``path`` atomically."""
-    write_text(path, json.dumps(obj, indent=2, sort_keys=False) + "\n")
+    """Write ``obj`` as indented JSON to ``path`` atomically (``strict_json``: NaN and infinities
+    as null)."""
+    write_text(path, strict_json(obj, indent=2) + "\n")
 
 
 def save_npy(path: str | Path, array: np.ndarray) -> None:

@@ -6,7 +6,6 @@ every command fails with one clear message on a bad file.
 from __future__ import annotations
 
 import dataclasses
-import json
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,7 +14,7 @@ import numpy as np
 import torch
 
 from capture_sim.array_files import read_arrays, read_meta
-from capture_sim.atomic import save_npz
+from capture_sim.atomic import save_npz, strict_json
 from capture_sim.errors import DisplexWarning, InputError, check_array
 from capture_sim.geometry import points_from_depth
 from capture_sim.rig import Camera, Rig
@@ -184,7 +183,7 @@ def load_scene(path: str | Path) -> Scene:
 def save_scene(scene: Scene, path: str | Path, compressed: bool = True) -> None:
     """Write a scene as interchange ``.npz`` atomically."""
     arrays = {key: getattr(scene, key) for key in _ARRAY_KEYS if getattr(scene, key) is not None}
-    save_npz(path, compressed=compressed, meta=np.array(json.dumps(scene.meta)), **arrays)
+    save_npz(path, compressed=compressed, meta=np.array(strict_json(scene.meta)), **arrays)
 
 
 def scene_paths(paths) -> list[Path]:

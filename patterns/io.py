@@ -6,14 +6,13 @@ row 0 at the top of the panel. Files are recognised by their contents, not their
 from __future__ import annotations
 
 import io
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from capture_sim.array_files import read_arrays, read_meta
-from capture_sim.atomic import write_bytes
+from capture_sim.atomic import strict_json, write_bytes
 from capture_sim.errors import InputError, check_array
 
 
@@ -58,7 +57,7 @@ def save_patterns(path: str | Path, patterns, meta: dict | None = None) -> None:
     check_pattern_output(path)
     values = validate_patterns(patterns)
     try:
-        meta_json = json.dumps(meta or {})
+        meta_json = strict_json(meta or {})
     except (TypeError, ValueError) as err:
         raise InputError(f"pattern meta must be JSON-serialisable ({err})") from None
     buffer = io.BytesIO()

@@ -106,6 +106,21 @@ def test_meta_must_be_json(tmp_path):
     assert not (tmp_path / "set.npz").exists()
 
 
+def test_non_finite_meta_and_json_outputs_are_strict_json(tmp_path):
+    # NaN and infinities have no JSON token: they are written as null, which every parser reads.
+    from capture_sim.atomic import write_json
+
+    meta = {"val_mae_history": [[50, float("nan")], (100, 9.5)], "loss": float("inf"), "nested": {"x": -float("inf")}}
+    save_patterns(tmp_path / "set.npz", _patterns(1), meta)
+    expected = {"val_mae_history": [[50, None], [100, 9.5]], "loss": None, "nested": {"x": None}}
+    stored = np.load(tmp_path / "set.npz")["meta"].item().decode("ascii")
+    assert "NaN" not in stored and "Infinity" not in stored
+    assert load_patterns(tmp_path / "set.npz")[1] == expected
+    write_json(tmp_path / "r.json", meta)
+    text = (tmp_path / "r.json").read_text()
+    assert json.loads(text, parse_constant=lambda token: pytest.fail(f"non-standard token {token}")) == expected
+
+
 def test_check_patterns_match_rig(reference_rig):
     check_patterns_match_rig(_patterns(2), reference_rig.rows, reference_rig.cols)
     with pytest.raises(InputError, match="9 x 16"):

@@ -11,7 +11,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from capture_sim.atomic import check_output_folder, refuse_overwriting, separate_json
+from capture_sim.atomic import check_output_folder, refuse_overwriting, separate_json, strict_json
 from capture_sim.errors import DisplexWarning, InputError, check_thread_count
 from capture_sim.rig import DEFAULT_RIG, rig_file
 
@@ -354,8 +354,6 @@ def _import_frames(args) -> None:
 
 
 def _invrender(args) -> None:
-    import json
-
     from train.invrender_command import OUTPUT_FILES, InvRenderConfig, run_invrender
 
     if args.out is not None:
@@ -368,7 +366,7 @@ def _invrender(args) -> None:
     if args.iterations is not None:
         changes["iterations"] = args.iterations
     document = run_invrender(InvRenderConfig(**changes))
-    print(json.dumps({key: document[key] for key in ("mae", "psnr", "ssim", "seconds", "cpu_seconds", "J") if key in document}, indent=2))
+    print(strict_json({key: document[key] for key in ("mae", "psnr", "ssim", "seconds", "cpu_seconds", "J") if key in document}, indent=2))
 
 
 def _demo(args) -> None:
@@ -380,8 +378,6 @@ def _demo(args) -> None:
 
 
 def _bench(args) -> None:
-    import json
-
     from train.bench import run_bench
 
     if args.repeats < 1:
@@ -402,7 +398,7 @@ def _bench(args) -> None:
             print(f"wrote {args.json} and {args.json.with_suffix('.png')}")
         return
     refuse_overwriting([("--json", args.json)], [])  # before minutes of timing, not after
-    print(json.dumps(run_bench(args.target, args.json, args.repeats), indent=2))
+    print(strict_json(run_bench(args.target, args.json, args.repeats), indent=2))
 
 
 def _scenes_synth(args) -> None:
