@@ -225,7 +225,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench = commands.add_parser("bench", help="benchmarks written as JSON (medians of several runs)")
     bench.add_argument("target", help="what to benchmark: sim, ps, train (about a minute each), invrender (a few minutes)")
     bench.add_argument("--json", type=_path, default=None, help="write the results here")
-    bench.add_argument("--repeats", type=int, default=5, help="timed runs per measurement, whose median is reported (default: 5)")
+    bench.add_argument("--repeats", type=int, default=None, help="timed runs per measurement, whose median is reported (default: 5; not with --sweep, which times nothing)")
     bench.add_argument(
         "--sweep", action="store_true", help="with target ps: normal error against noise level for several methods (JSON and a chart next to it)"
     )
@@ -380,8 +380,10 @@ def _demo(args) -> None:
 def _bench(args) -> None:
     from train.bench import run_bench
 
-    if args.repeats < 1:
+    if args.repeats is not None and args.repeats < 1:
         raise InputError("--repeats must be at least 1")
+    if args.repeats is not None and args.sweep:
+        raise InputError("--repeats applies to the timing benchmarks, not --sweep (its errors are computed once, from seeded noise)")
     if args.size is not None and not args.sweep:
         raise InputError("--size applies to --sweep only (the timing benchmarks use the full 512 x 612 frame)")
     if args.sweep:
@@ -398,7 +400,7 @@ def _bench(args) -> None:
             print(f"wrote {args.json} and {args.json.with_suffix('.png')}")
         return
     refuse_overwriting([("--json", args.json)], [])  # before minutes of timing, not after
-    print(strict_json(run_bench(args.target, args.json, args.repeats), indent=2))
+    print(strict_json(run_bench(args.target, args.json, 5 if args.repeats is None else args.repeats), indent=2))
 
 
 def _scenes_synth(args) -> None:
