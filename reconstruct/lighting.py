@@ -202,12 +202,6 @@ class LightField:
             return _take_rows(self.weights, rows)
         return self._lit(rows, normal).mul_(_take_rows(self.weights, rows))
 
-    def unlit_weights(self, rows, normal: torch.Tensor) -> torch.Tensor:
-        """(n, K) (1 - s_k) f_k / d_k of pixels ``rows`` (slice or indices) with normals (3, n):
-        the weights of the lights behind each pixel's tangent plane (``shadowed_weights`` plus
-        these are the stored weights)."""
-        return self._lit(rows, normal).sub_(1).mul_(_take_rows(self.weights, rows)).neg_()
-
     def vector_blocks(self, index, normal: torch.Tensor, lighting: torch.Tensor, whole: torch.Tensor | None = None,
                       out: torch.Tensor | None = None):
         """Effective lighting vectors with the attached shadows of the given normals, by blocks.
@@ -385,16 +379,18 @@ class _ShadowedLighting(torch.autograd.Function):
         x, y, z = field.points.T
         torch.mul(grad_vectors[:, :, 0], x, out=grad_summed[:, :, 3]).addcmul_(grad_vectors[:, :, 1], y).addcmul_(grad_vectors[:, :, 2], z).neg_()
         grad_summed = grad_summed.view(-1, field.num_pixels)  # (12 M, N)
-        # Every pixel as if it saw every light (one product over the stored weights), minus the
-        # lights behind the tangent planes of the pixels that do not: their shadow masks are
-        # formed and nobody else's (the pixels are mixed, so blocks of the whole set would
-        # almost all need them).
-        grad_lighting = torch.mm(field.weights.T, grad_summed.T)  # (K, 12 M)
+        # The pixels that see every light in one product over the stored weights (the others'
+        # gradients zeroed there), then those others with their shadow masks: masks are formed
+        # for them alone (the pixels are mixed, so almost every block of the whole set would
+        # need them), and nothing cancels (a clamped weight of a light behind a point on the
+        # display is ~1e9: subtracting it from a sum would leave float32 rounding noise).
         whole = field.sees_all(None, normal) if ctx.whole is None else ctx.whole
         shadowed = torch.nonzero(~whole).squeeze(1)
+        grad_shadowed = grad_summed.index_select(1, shadowed)
+        grad_lighting = torch.mm(field.weights.T, grad_summed.index_fill_(1, shadowed, 0.0).T)  # (K, 12 M)
         for start, stop, rows in field.cache_rows(shadowed):
-            unlit = field.unlit_weights(rows, normal.index_select(1, rows))
-            grad_lighting.addmm_(unlit.T, grad_summed.index_select(1, rows).T, alpha=-1)
+            lit = field.shadowed_weights(rows, normal.index_select(1, rows), whole[rows])
+            grad_lighting.addmm_(lit.T, grad_shadowed[:, start:stop].T)
         return grad_lighting, None, None, None, None
 
 

@@ -126,3 +126,26 @@ def test_lighting_vectors_and_their_gradient_match_the_dense_formula():
     (grad,) = torch.autograd.grad((vectors * upstream).sum(), lighting)
     (expected,) = torch.autograd.grad((dense * upstream).sum(), lighting)
     torch.testing.assert_close(grad, expected)
+
+
+def test_lighting_gradient_of_a_point_on_a_light_behind_it_is_exact_in_float32():
+    # A point within min_distance of a superpixel has its weight clamped (~1e9); with that light
+    # behind its tangent plane the gradient must not be a difference of sums holding that weight.
+    lights = load_rig().lights(torch.float64)
+    generator = torch.Generator().manual_seed(4)
+    points = torch.stack([0.05 * torch.randn(50, generator=generator), 0.05 * torch.randn(50, generator=generator), 0.5 + 0.0 * torch.randn(50, generator=generator)], dim=1).double()
+    points[0] = lights[0] + torch.tensor([0.0, 0.0, 1e-4], dtype=torch.float64)
+    normal = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64).repeat(50, 1).T.contiguous()
+    normal[:, 0] = torch.tensor([1.0, 0.0, 0.0])
+    field64 = LightField(points, lights, Falloff(), 1e-3, block_size=16)
+    lighting = torch.rand(lights.shape[0], 12, generator=generator, dtype=torch.float64)
+    upstream = torch.randn(1, 3, 3, 50, generator=generator, dtype=torch.float64)
+    grads = []
+    for dtype in (torch.float64, torch.float32):
+        field = LightField.from_weights(points.to(dtype), lights.to(dtype), field64.weights.to(dtype).contiguous(), block_size=16)
+        values = torch.cat([block for _, _, block in field.vector_blocks(None, normal.to(dtype), lighting.to(dtype))], dim=-1)
+        assert not field.sees_all(None, normal.to(dtype))[0]
+        weights = lighting.to(dtype).clone().requires_grad_()
+        (differentiable_vectors(field, normal.to(dtype), weights, values) * upstream.to(dtype)).sum().backward()
+        grads.append(weights.grad.double())
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-4, atol=1e-4 * float(grads[0].abs().max()))

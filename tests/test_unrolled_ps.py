@@ -69,6 +69,20 @@ def test_alternation_backward_matches_autograd():
         torch.testing.assert_close(hand, auto, rtol=1e-9, atol=1e-12)
 
 
+def test_alternation_backward_drops_the_terms_of_masked_pixels():
+    # A clamped albedo channel whose terms overflow float32 must not turn the pixel's gradient
+    # into NaN (inf * 0): the masks select, as autograd's clamp does.
+    normal = torch.tensor([[0.0], [0.0], [1.0]])
+    moments = torch.tensor([1.0, 1, 1, 0, 0, 0]).repeat(3, 1)[..., None]
+    rhs = torch.tensor([[-1e33] * 3, [3e-4, 2e-4, 1e-3], [1e-4, -2e-4, 1e-3]])[..., None]
+    inputs = [value.clone().requires_grad_() for value in (normal, moments, rhs)]
+    new_normal, albedo = alternate(inputs[0], None, inputs[1], inputs[2], 1e-6, 1)
+    (new_normal[0].sum() + albedo.sum()).backward()
+    assert all(torch.isfinite(value.grad).all() for value in inputs)
+    empty = alternate(torch.zeros(3, 0), None, torch.zeros(3, 6, 0), torch.zeros(3, 3, 0), 1e-6, 2)
+    assert [tuple(value.shape) for value in empty] == [(3, 0), (3, 0)]
+
+
 def test_gradcheck_alternation():
     # Pixels whose normal moves (a dark one keeps its input normal, detached by design), among
     # them ones with a clamped albedo channel.
