@@ -14,9 +14,10 @@ sampled pixels costs a few matrix products and wide elementwise operations:
   in cache-sized blocks of pixels;
 - the shadow masks and the alternations run a fixed number of times, without gradient; a pixel
   that sees every light keeps the b and moments of its all-ones mask between mask updates;
-- gradients come from ``grad_alternations`` alternations unrolled from the detached solution with
-  the final masks: a truncated implicit gradient, cheap in memory (the (N, K) weights are kept
-  once; the shadowed ones are formed again in the backward pass).
+- gradients come from ``grad_alternations`` alternations (``reconstruct.unrolled_alternation``, whose
+  backward is written out) unrolled from the detached solution with the final masks: a truncated
+  implicit gradient, cheap in memory (the (N, K) weights are kept once; the shadowed ones are
+  formed again in the backward pass, for the pixels with lights behind them only).
 With the default (small) iteration counts the values are not converged: on noise-free data they
 are typically within a degree or two of the full solver's, more on silhouettes. Training uses
 this, evaluation uses ``solve_ps`` (convergence, validity flags, restarts, exact implicit gradients).
@@ -100,7 +101,7 @@ class _ShadowState:
 
         vectors = normal.new_empty((lighting.shape[1] // 12, 3, 3, stale.shape[0] if index is None else index.numel()))
         for _ in field.vector_blocks(index, pick(normal), lighting, pick(whole), out=vectors):
-            pass
+            pass  # each block is written into ``vectors``
         moments, rhs_moments, _ = lighting_moments(vectors, pick(intensity), pick(equation_weight))
         if index is None:
             self.vectors, self.moments, self.rhs_moments = vectors, moments, rhs_moments
