@@ -59,6 +59,8 @@ def read_meta(arrays: dict, path: str | Path, what: str) -> dict:
         meta = json.loads(stored.item().decode("ascii") if stored.dtype.kind == "S" and stored.ndim == 0 else str(stored))
     except ValueError as err:  # UnicodeDecodeError included
         raise InputError(f"{path}: {what} meta is not JSON ({err})") from None
+    except RecursionError:
+        raise InputError(f"{path}: {what} meta is JSON nested too deeply to read") from None
     if not isinstance(meta, dict):
         raise InputError(f"{path}: {what} meta must be a JSON object, got {type(meta).__name__}")
     return meta

@@ -325,3 +325,10 @@ def test_float32_generation_keeps_dtype():
 def test_default_sharpness_gives_binary_edges():
     patterns = make_patterns("mono_complementary", 4, 9, 16, sharpness=DEFAULT_SHARPNESS).double()
     assert ((patterns < 1e-6) | (patterns > 1 - 1e-6)).all()
+    # Oblique splits (M = 5, 6, 9..12) pass within 0.0032 cells of a cell centre on this grid: the
+    # halves must still be binary, as DESIGN section 6 says.
+    for rows, cols in ((9, 16), (4, 8)):
+        for family in ("mono_complementary", "tri_complementary"):
+            for count in range(2, 13):
+                patterns = make_patterns(family, count, rows, cols).double()
+                assert ((patterns < 1e-6) | (patterns > 1 - 1e-6)).all(), (family, count, rows, cols)

@@ -100,6 +100,13 @@ def test_bad_files_raise(tmp_path):
         load_patterns(tmp_path / "notjson.npz")
 
 
+def test_absurdly_nested_meta_is_one_clear_error(tmp_path):
+    nested = '{"a":' + "[" * 100000 + "]" * 100000 + "}"
+    np.savez(tmp_path / "deep.npz", patterns=_patterns(1), meta=np.array(nested.encode("ascii")))
+    with pytest.raises(InputError, match="nested too deeply"):
+        load_patterns(tmp_path / "deep.npz")
+
+
 def test_meta_must_be_json(tmp_path):
     with pytest.raises(InputError, match="JSON"):
         save_patterns(tmp_path / "set.npz", _patterns(1), {"rig": object()})

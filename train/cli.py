@@ -108,7 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "torch's thread pool when other programs keep the cores busy, which can make commands 10x slower")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    scenes = commands.add_parser("scenes", help="synthetic scene sets").add_subparsers(dest="scenes_command", required=True)
+    scenes = commands.add_parser("scenes", help="synthetic scene sets").add_subparsers(dest="scenes_command", required=True, metavar="{synth}")
     synth = scenes.add_parser("synth", help="write the default synthetic scene set (train/ and test/ splits)")
     synth.add_argument("--out", type=_path, required=True, help="output folder")
     synth.add_argument("--size", type=_size, default=(128, 153), help="image size HxW (default 128x153; full 512x612)")
@@ -127,12 +127,12 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
     simulate.set_defaults(handler=_simulate)
 
-    patterns = commands.add_parser("patterns", help="heuristic pattern families").add_subparsers(dest="patterns_command", required=True)
+    patterns = commands.add_parser("patterns", help="heuristic pattern families").add_subparsers(dest="patterns_command", required=True, metavar="{make,list}")
     make = patterns.add_parser("make", help="write a heuristic pattern set")
     make.add_argument("--family", required=True, help="family name (see `displex patterns list`)")
     make.add_argument("--M", type=int, required=True, dest="num_patterns", help="number of patterns")
     make.add_argument("--out", type=_pattern_output, required=True, help="pattern file to write (.npz)")
-    make.add_argument("--preset", default="default", help="'default' (off level 0) or 'ddps' (published 0.1/0.9 levels)")
+    make.add_argument("--preset", default="default", help="'default' (off level 0, on level 1) or 'ddps' (the published 0.1/0.9 levels; tri_gradient and the random families have no levels and ignore it)")
     make.add_argument("--seed", type=int, default=0, help="seed of the random families")
     make.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
     make.set_defaults(handler=_patterns_make)
