@@ -496,6 +496,9 @@ def test_documented_flags_reach_their_commands(tmp_path, scene_file, capsys):
     from train.learn import TrainConfig
 
     # patterns list names every family; --preset ddps gives the published initial patterns.
+    # The rig's grid decides the supported M: grouped_olat reaches M = 20 on 9 x 16, not on 4 x 8.
+    assert run(["patterns", "list", "--M", "20", "--rig", "panel-55in-4x8"]) == 0
+    assert "grouped_olat         (not defined for M=20 on 4 x 8)" in capsys.readouterr().out
     assert run(["patterns", "list", "--M", "4"]) == 0
     listing = capsys.readouterr().out
     from patterns.families import FAMILIES

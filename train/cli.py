@@ -138,6 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
     make.set_defaults(handler=_patterns_make)
     listing = patterns.add_parser("list", help="list families and their parameters")
     listing.add_argument("--M", type=int, default=4, dest="num_patterns", help="pattern count whose parameters are listed (default: 4)")
+    listing.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP + " (its grid decides which M a family supports)")
     listing.set_defaults(handler=_patterns_list)
 
     evaluate = commands.add_parser("evaluate", help="reconstruct scenes under a pattern set and measure normal errors")
@@ -438,15 +439,17 @@ def _patterns_make(args) -> None:
 
 
 def _patterns_list(args) -> None:
+    from capture_sim.rig import load_rig
     from patterns.families import FAMILIES
 
     if args.num_patterns < 1:
         raise InputError(f"--M must be at least 1, got {args.num_patterns}")
+    rig = load_rig(args.rig)
     for name, family in FAMILIES.items():
-        if not family.supports(args.num_patterns):
-            print(f"{name:<20} (not defined for M={args.num_patterns}) {family.summary}")
+        if not family.supports(args.num_patterns, rig.rows, rig.cols):
+            print(f"{name:<20} (not defined for M={args.num_patterns} on {rig.rows} x {rig.cols}) {family.summary}")
             continue
-        names = ", ".join(parameter.name for parameter in family.parameters(args.num_patterns))
+        names = ", ".join(parameter.name for parameter in family.parameters(args.num_patterns, rig.rows, rig.cols))
         print(f"{name:<20} {family.summary}\n{'':<20} parameters at M={args.num_patterns}: {names[:160]}{'...' if len(names) > 160 else ''}")
 
 
