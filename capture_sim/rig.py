@@ -233,6 +233,17 @@ def available_rigs() -> list[str]:
 
 def load_rig(name_or_path: str | Path = DEFAULT_RIG) -> Rig:
     """Load a rig from a preset name (``configs/rigs/NAME.toml``) or a TOML file path."""
+    path = rig_source(name_or_path)
+    return rig_from_dict(load_toml(path), default_name=path.stem)
+
+
+def rig_source(name_or_path: str | Path) -> Path:
+    """The TOML file ``load_rig`` reads for a preset name or a file path (a preset's own file in
+    ``configs/rigs``): what a run made with the rig depends on.
+
+    Raises:
+        InputError: an unknown preset, or a path that is not named *.toml.
+    """
     path = Path(name_or_path)
     if path.suffix != ".toml":
         if path.exists() and not (RIG_DIR / f"{name_or_path}.toml").exists():
@@ -240,7 +251,7 @@ def load_rig(name_or_path: str | Path = DEFAULT_RIG) -> Rig:
         path = RIG_DIR / f"{name_or_path}.toml"
         if not path.exists():
             raise InputError(f"unknown rig {name_or_path!r}; presets: {', '.join(available_rigs())}")
-    return rig_from_dict(load_toml(path), default_name=path.stem)
+    return path
 
 
 def rig_file(name_or_path: str | Path) -> Path | None:

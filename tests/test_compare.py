@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from capture_sim.atomic import strict_json
 from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import load_rig
 from capture_sim.synth import write_scene_set
@@ -75,6 +76,26 @@ def test_config_out_is_relative_to_the_repository_root_like_its_other_paths(scen
     assert tiny_config(scenes, out="/tmp/absolute").out == "/tmp/absolute"
     with pytest.raises(InputError, match="out"):
         tiny_config(scenes, out=" ")
+
+
+def test_best_heuristic_is_never_a_method_that_reconstructed_nothing():
+    from train.report import learned_against_best
+
+    rows = [{"kind": "learned", "M": 2, "mae": 30.0, "invalid_fraction": 0.5, "series": "learned", "label": "learned"},
+            {"kind": "heuristic", "M": 2, "mae": 28.0, "invalid_fraction": 1.0, "series": "mono_gradient", "label": "mono_gradient"},
+            {"kind": "heuristic", "M": 2, "mae": 33.0, "invalid_fraction": 0.6, "series": "tri_gradient", "label": "tri_gradient"}]
+    (row,) = learned_against_best(rows, [2], 3000.0)
+    assert row["best_heuristic"] == "tri_gradient" and row["ratio"] == pytest.approx(30 / 33)
+    assert learned_against_best(rows[:2], [2], 3000.0) == []  # no heuristic reconstructed anything: no ratio
+
+
+def test_resolved_config_keeps_non_finite_values_in_nested_tables(scenes):
+    from train.compare import compare_config_to_dict
+
+    config = tiny_config(scenes, learned={"steps": 2, "angle_cap_deg": float("inf")}, learned_at={"2": {"angle_cap_deg": float("inf")}},
+                         solver={"restart_condition": float("inf")})
+    written = json.loads(strict_json(compare_config_to_dict(config)))
+    assert written["learned"]["angle_cap_deg"] == written["learned_at"]["2"]["angle_cap_deg"] == written["solver"]["restart_condition"] == "inf"
 
 
 def test_config_errors(scenes):
@@ -331,15 +352,21 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     monkeypatch.setattr("train.compare.train_patterns", no_learning)
     again = run_compare(config, tmp_path, progress=False)
     assert next(m for m in again["methods"] if m["kind"] == "learned")["cost_seconds"] == pytest.approx(learned["cost_seconds"])
-    # Scene files rewritten since the run (same paths, same config) are not silently reused.
-    scene_file = sorted((scenes / "train").glob("*.npz"))[0]
-    stat = scene_file.stat()
-    os.utime(scene_file, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
-    try:
-        with pytest.raises(InputError, match="made from scene files that have changed since"):
-            run_compare(config, tmp_path, progress=False)
-    finally:
-        os.utime(scene_file, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    # A rerun without the specular-free check neither keeps nor links the earlier run's chart.
+    run_compare(dataclasses.replace(config, specular_free_check=False), tmp_path, progress=False)
+    assert not (tmp_path / CHARTS["specular_free"]).exists() and CHARTS["specular_free"] not in (tmp_path / "report.md").read_text()
+    # Scene files, or the rig's file (here a preset's), rewritten since the run (same paths, same
+    # config) are not silently reused.
+    from capture_sim.rig import rig_source
+
+    for changed in (sorted((scenes / "train").glob("*.npz"))[0], rig_source(config.rig)):
+        stat = changed.stat()
+        os.utime(changed, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
+        try:
+            with pytest.raises(InputError, match="made from input files .* that have changed since"):
+                run_compare(config, tmp_path, progress=False)
+        finally:
+            os.utime(changed, ns=(stat.st_atime_ns, stat.st_mtime_ns))
     # A rerun refused for another config leaves the last finished run's files as they were,
     # the heuristic pattern files included (they used to be rewritten before the refusal).
     before = {path: path.read_bytes() for path in (tmp_path / "patterns").glob("*.npz")}
@@ -380,9 +407,17 @@ def test_demo_reuses_only_a_scene_set_of_its_own_settings(tmp_path):
     assert _scene_set_matches(tmp_path / "plain" / "index.json", rig, config)
     assert not _scene_set_matches(tmp_path / "shadows" / "index.json", rig, config)
     assert not _scene_set_matches(tmp_path / "plain" / "index.json", rig, dataclasses.replace(config, scene_seed=config.scene_seed + 1))
+    # A listed scene file deleted, or another one added beside them: the set is not reused.
+    test_files = sorted((tmp_path / "plain" / "test").glob("*.npz"))
+    extra = tmp_path / "plain" / "train" / "extra.npz"
+    extra.write_bytes(test_files[0].read_bytes())
+    assert not _scene_set_matches(tmp_path / "plain" / "index.json", rig, config)
+    extra.unlink()
+    test_files[-1].unlink()
+    assert not _scene_set_matches(tmp_path / "plain" / "index.json", rig, config)
 
 
-def test_demo_runs_on_a_tiny_config(tmp_path, capsys):
+def test_demo_runs_on_a_tiny_config(tmp_path, capsys, monkeypatch):
     config_path = tmp_path / "configs" / "compare" / "tiny.toml"
     config_path.parent.mkdir(parents=True)
     config_path.write_text(
@@ -392,11 +427,15 @@ def test_demo_runs_on_a_tiny_config(tmp_path, capsys):
     )
     results = run_demo(tmp_path / "demo", progress=False, config_path=config_path, steps=1)
     assert (tmp_path / "demo" / "scenes" / "index.json").is_file()
-    assert results["config"]["train_scenes"] == [str(tmp_path / "demo" / "scenes" / "train")]
+    assert results["config"]["train_scenes"] == [str((tmp_path / "demo" / "scenes" / "train").resolve())]
     learned = next(m for m in results["methods"] if m["kind"] == "learned")
     assert learned["info"]["steps"] == 1
     assert {m["kind"] for m in results["methods"]} == {"heuristic", "learned", "search"}
     assert "report.md" in capsys.readouterr().out
+    # The same folder named relative to another working directory: the runs are reused.
+    monkeypatch.chdir(tmp_path / "configs")
+    again = run_demo(Path("..") / "demo", progress=False, config_path=config_path, steps=1)
+    assert next(m for m in again["methods"] if m["kind"] == "learned")["cost_seconds"] == pytest.approx(learned["cost_seconds"])
 
 
 def test_parallel_subset_evaluation_matches_in_process_and_deduplicates(scenes, tmp_path):

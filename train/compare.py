@@ -37,7 +37,7 @@ from capture_sim.atomic import write_json
 from capture_sim.display import display_emission
 from capture_sim.errors import DisplexWarning, InputError, check_seed
 from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, Rig, load_rig, rig_file
-from capture_sim.scene import file_fingerprints, scene_paths
+from capture_sim.scene import scene_paths
 from capture_sim.synth import GENERATOR
 from capture_sim.toml_io import load_toml
 from patterns.families import FAMILIES, PRESETS, get_family, make_patterns
@@ -46,7 +46,7 @@ from train.capture import scene_exposure
 from train.config_io import config_from_dict, config_to_dict, json_value
 from train.evaluate import EvalSettings, evaluate_scene
 from reconstruct.photometric_stereo import PSConfig
-from train.learn import TrainConfig, auto_init_family, names_pattern_file, train_patterns
+from train.learn import TrainConfig, auto_init_family, input_fingerprints, names_pattern_file, train_patterns
 from train.search import SearchConfig, run_search, trace_chart_path
 from train.scene_pixels import ScenePixels, fixed_pixel_subsets, scene_pixels
 from train.scene_sets import resolve_scenes
@@ -376,7 +376,9 @@ def compare_config_to_dict(config: CompareConfig) -> dict:
     out = config_to_dict(config)
     out["search"] = [config_to_dict(run) for run in config.search]
     out["external"] = [config_to_dict(item) for item in config.external]
-    out["learned_at"] = {str(m): dict(v) for m, v in config.learned_at.items()}
+    # The nested tables as well: strict JSON would write a non-finite value (angle_cap_deg = inf) as null.
+    out["learned"] = {key: json_value(value) for key, value in config.learned.items()}
+    out["learned_at"] = {str(m): {key: json_value(value) for key, value in v.items()} for m, v in config.learned_at.items()}
     out["learned_seeds_at"] = {str(m): list(v) for m, v in config.learned_seeds_at.items()}
     out["learned_counts"] = None if config.learned_counts is None else list(config.learned_counts)
     out["solver"] = {key: json_value(value) for key, value in config.solver.items()}
@@ -430,23 +432,20 @@ class Method:
 
 def _reusable(path: Path, run_config, what: str) -> dict | None:
     """Meta and patterns of an existing output made with the same config (a TrainConfig or
-    SearchConfig) from the same scene files; None if absent. Another config, or scene files that
-    changed since (``scene_files``; runs recorded without them are taken as they are), raise."""
+    SearchConfig) from the same input files; None if absent. Another config, or input files that
+    changed since (``train.learn.input_fingerprints``: scene, init pattern and rig files), raise."""
     if not path.exists():
         return None
     patterns, meta = load_patterns(path)
     if meta.get("config") != config_to_dict(run_config):
         raise InputError(f"{path} holds {what} made with another config; delete it or choose another output folder")
-    recorded = _run_record(path).get("scene_files")
-    if recorded is not None and recorded != scene_files(run_config):
-        raise InputError(f"{path} holds {what} made from scene files that have changed since; delete it or choose another output folder")
+    record = _run_record(path)
+    # Records of earlier versions held the scene files only: such a run cannot show it was made
+    # from the current rig and init files, so it is not reused.
+    if record.get("input_files") != input_fingerprints(run_config):
+        raise InputError(f"{path} holds {what} made from input files (scenes, rig or init patterns) that have changed since, "
+                         "or not recorded; delete it or choose another output folder")
     return {"meta": meta, "patterns": patterns}
-
-
-def scene_files(run_config) -> list[list]:
-    """[path, size in bytes, modification time in ns] of every scene file a learning or search
-    config reads (none for the default synthetic scenes): what a reused run must have been made from."""
-    return file_fingerprints(scene_paths((*run_config.scenes, *getattr(run_config, "val_scenes", ()))))
 
 
 def _run_record(path: Path) -> dict:
@@ -492,7 +491,7 @@ def learned_method(config: CompareConfig, num_patterns: int, seed: int, pattern_
         result = train_patterns(train_config, path, logdir=None if logdir is None else logdir / method_id, progress=progress,
                                 checkpoint_mode="resume_or_fresh")
         seconds = result.seconds  # includes the sessions of a resumed run
-        write_json(path.with_name(path.stem + ".run.json"), {"seconds": seconds, "steps": train_config.steps, "scene_files": scene_files(train_config)})
+        write_json(path.with_name(path.stem + ".run.json"), {"seconds": seconds, "steps": train_config.steps, "input_files": input_fingerprints(train_config)})
         patterns, val_history = result.patterns, result.val_history
     else:
         seconds = _run_record(path).get("seconds")
@@ -513,7 +512,7 @@ def searched_method(config: CompareConfig, run: SearchRun, pattern_dir: Path, pr
     if existing is None:
         meta = run_search(search_config, path, logdir=None if logdir is None else logdir / run.name, progress=progress)
         patterns = load_patterns(path)[0]
-        write_json(path.with_name(path.stem + ".run.json"), {"seconds": meta["seconds"], "scene_files": scene_files(search_config)})
+        write_json(path.with_name(path.stem + ".run.json"), {"seconds": meta["seconds"], "input_files": input_fingerprints(search_config)})
     else:
         meta, patterns = existing["meta"], existing["patterns"]
     info = {key: meta[key] for key in ("start_mae", "best_mae", "evaluations", "stop_reason", "sharpness")}
@@ -954,7 +953,19 @@ def _scene_set_matches(index_path: Path, rig, config: CompareConfig) -> bool:
         return False
     wanted = {"generator": GENERATOR, "rig": rig.name, "height": config.scene_size[0], "width": config.scene_size[1],
               "seed": config.scene_seed, "cast_shadows": False}
-    return isinstance(index, dict) and all(index.get(key) == value for key, value in wanted.items())
+    if not (isinstance(index, dict) and all(index.get(key) == value for key, value in wanted.items())):
+        return False
+    # Every listed scene file is still there, and no other scene file has been added beside them.
+    splits = index.get("splits")
+    if not isinstance(splits, dict) or set(splits) != {"train", "test"}:
+        return False
+    folder = index_path.parent
+    try:
+        listed = {(folder / entry["file"]).resolve() for split in splits.values() for entry in split}
+    except (TypeError, KeyError):
+        return False
+    present = {path.resolve() for split in splits for path in (folder / split).glob("*.npz")}
+    return listed == present
 
 
 def run_demo(out_dir: Path, progress: bool = True, config_path: Path | None = None, steps: int | None = None) -> dict:
@@ -980,6 +991,9 @@ def run_demo(out_dir: Path, progress: bool = True, config_path: Path | None = No
     scene_dir = out_dir / "scenes"
     if not _scene_set_matches(scene_dir / "index.json", rig, config):
         write_scene_set(scene_dir, rig, config.scene_size[0], config.scene_size[1], config.scene_seed, progress=progress)
+    # Absolute paths: the learned and searched runs record them in their configs, and a rerun
+    # reuses those runs however --out is spelled and whatever the working directory.
+    scene_dir = scene_dir.resolve()
     config = dataclasses.replace(config, train_scenes=(str(scene_dir / "train"),), test_scenes=(str(scene_dir / "test"),))
     results = run_compare(config, out_dir, progress)
     print(f"demo finished in {results['timings']['total_seconds']:.0f} s; report: {results['report']}")

@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from capture_sim.atomic import atomic_path, exclusive_output, write_json
 from capture_sim.errors import InputError, check_seed
-from capture_sim.rig import DEFAULT_RIG, load_rig, rig_file
+from capture_sim.rig import DEFAULT_RIG, load_rig, rig_file, rig_source
 from capture_sim.scene import file_fingerprints, scene_paths
 from patterns.families import FAMILIES, get_family, make_patterns
 from patterns.io import check_patterns_match_rig, load_patterns, save_patterns
@@ -303,9 +303,8 @@ def checkpoint_identity(config: TrainConfig) -> dict:
     pattern and rig files as absolute paths, so that a run resumes whether its files are named
     relative to the working directory or absolutely, and a relative name that means other files
     from another directory does not resume (the config record beside the patterns keeps the
-    names as given); plus ``input_files``, the ``file_fingerprints`` of the scene files and an
-    init pattern file, so that a run does not resume on, or report validation of, files rewritten
-    since. The files must exist."""
+    names as given); plus ``input_files`` (``input_fingerprints``), so that a run does not resume
+    on, or report validation of, files rewritten since. The files must exist."""
     def absolute(name: str) -> str:
         return str(Path(name).resolve())
 
@@ -316,9 +315,19 @@ def checkpoint_identity(config: TrainConfig) -> dict:
         init=absolute(config.init) if names_pattern_file(config.init) else config.init,
         rig=absolute(config.rig) if rig_file(config.rig) else config.rig,
     ))
-    init_file = [config.init] if names_pattern_file(config.init) else []
-    identity["input_files"] = file_fingerprints([*scene_paths((*config.scenes, *config.val_scenes)), *init_file])
+    identity["input_files"] = input_fingerprints(config)
     return identity
+
+
+def input_fingerprints(config) -> list[list]:
+    """``file_fingerprints`` of every file a learning or search config (``TrainConfig`` or
+    ``train.search.SearchConfig``) reads: its scene files, an init pattern file, and the rig's
+    TOML file (a preset's too). A run made from files rewritten since is neither resumed nor
+    reused (``train.compare``)."""
+    init = getattr(config, "init", "")
+    init_file = [init] if names_pattern_file(init) else []
+    scenes = (*config.scenes, *getattr(config, "val_scenes", ()))
+    return file_fingerprints([*scene_paths(scenes), *init_file, rig_source(config.rig)])
 
 
 _AFRESH = "pass --fresh (or delete it) to start afresh"

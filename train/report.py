@@ -129,10 +129,12 @@ def summary_tables(results: dict) -> dict:
 
 
 def lowest_mae_per_m(rows: list[dict], kinds: tuple[str, ...]) -> dict:
-    """M -> the row of one of ``kinds`` with the lowest MAE at that M (the first on ties)."""
+    """M -> the row of one of ``kinds`` with the lowest MAE at that M (the first on ties), among
+    rows that reconstructed something (``all_invalid`` rows measure the placeholder normal: at a
+    high noise one can beat every real reconstruction); M without such a row is left out."""
     best: dict = {}
     for row in rows:
-        if row["kind"] in kinds and (row["M"] not in best or row["mae"] < best[row["M"]]["mae"]):
+        if row["kind"] in kinds and not all_invalid(row) and (row["M"] not in best or row["mae"] < best[row["M"]]["mae"]):
             best[row["M"]] = row
     return best
 
@@ -592,13 +594,18 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
                                   "Speed-accuracy: normal error against reconstruction time", short), out_dir / CHARTS["mae_vs_compute_time"])
     save_figure(chart_mae_vs_noise(results, f"{len(results['test_scenes'])} test scenes; analytic PS (OLAT: Woodham); noise scale multiplies the rig's noise variances."),
                 out_dir / CHARTS["mae_vs_noise"])
+    written = {"mae_vs_M", "mae_vs_capture_time", "mae_vs_compute_time", "mae_vs_noise"}
     free_rows = (summary.get("specular_free") or {}).get("rows")
     if free_rows:
         save_figure(chart_specular_free(rows, free_rows, f"{short} x: the same scenes, pixels and noise without the specular stacks."),
                     out_dir / CHARTS["specular_free"])
+        written.add("specular_free")
     entries = pattern_entries(results, rows, pattern_sets)
     if entries:
         save_figure(chart_patterns(entries, "Each row: one pattern set, patterns left to right; superpixel grid as on the panel."), out_dir / CHARTS["patterns"])
+        written.add("patterns")
+    for name in set(CHARTS) - written:  # an earlier run's chart would contradict this report
+        (out_dir / CHARTS[name]).unlink(missing_ok=True)
 
     lines = ["# Pattern comparison", "", caption, ""]
     counts = results["pattern_counts"]
@@ -708,7 +715,7 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
                     "mae_vs_noise": "MAE against noise level", "patterns": "The pattern sets",
                     "specular_free": "Error with and without specular reflection"}
     for name, file_name in CHARTS.items():
-        if (out_dir / file_name).exists():
+        if name in written:
             lines += [f"### {chart_titles[name]}", "", f"![{chart_titles[name]}]({file_name})", ""]
     lines += ["## Run", "",
               f"Learning {timings.get('learning_seconds', 0):.0f} s, searches {timings.get('search_seconds', 0):.0f} s, "
