@@ -15,6 +15,9 @@ Pixels outside the mask have zero OLAT, zero normal and zero depth.
 """
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -234,7 +237,10 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int
 
     Writes ``out_dir/train/NAME.npz`` and ``out_dir/test/NAME.npz`` (scene interchange format,
     ``save_scene``) and ``out_dir/index.json`` listing every scene with its split, file, shape,
-    material and seed, plus the rig, size, set seed and generator. All files are written atomically.
+    material and seed, plus the rig, size, set seed and generator. The scenes are synthesised into
+    a hidden staging folder and renamed into place at the end, the index last: a failed or
+    interrupted run leaves an earlier set in ``out_dir`` as it was (files of the same names are
+    replaced by a finished run; other files are left alone).
 
     Args:
         out_dir: output folder (created if missing).
@@ -259,29 +265,37 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int
     }
     index_path = out_dir / "index.json"
     check_replaceable(index_path)  # a folder in its place: one clear line before the work
-    # index.json is written last: an interrupted run must not leave an earlier set's index over a
-    # folder of mixed scenes (``displex demo`` reuses a folder whose index matches its settings).
-    index_path.unlink(missing_ok=True)
     # Folders this run creates (the splits, the set's folder and any missing parents), deepest first.
     new_folders = [folder for folder in (*(out_dir / split for split in index["splits"]), out_dir, *out_dir.parents) if not folder.exists()]
-    written = []
     try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=".staging.", dir=out_dir))
+    except OSError as err:
+        raise InputError(f"cannot write into {out_dir}: {err.strerror or err}") from None
+    try:
+        # The long synthesis writes into a hidden staging folder: interrupted, it leaves an
+        # earlier set in ``out_dir`` as it was, its index included.
         for split, spec, scene in _synthesised(rig, height, width, seed, cast_shadows, "synthesising scenes", progress):
             relative = Path(split) / f"{spec.name}.npz"
-            save_scene(scene, out_dir / relative)
-            written.append(out_dir / relative)
+            save_scene(scene, staging / relative)
             index["splits"][split].append({
                 "name": spec.name, "file": relative.as_posix(), "shape": spec.shape,
                 "material": spec.material, "seed": spec.seed,
             })
+        # Then renames only: the earlier index goes first and the new one comes last, so that no
+        # index ever stands over a mixture of two sets (``displex demo`` reuses a folder whose
+        # index matches its settings).
+        index_path.unlink(missing_ok=True)
+        for split, entries in index["splits"].items():
+            (out_dir / split).mkdir(exist_ok=True)
+            for entry in entries:
+                os.replace(staging / entry["file"], out_dir / entry["file"])
+        write_json(index_path, index)
     except BaseException:
-        # A failed or interrupted set must not leave scenes that a later --scenes DIR/train would
-        # pick up as if they were the whole split.
-        for path in written:
-            path.unlink(missing_ok=True)
+        shutil.rmtree(staging, ignore_errors=True)
         for folder in new_folders:
             if folder.is_dir() and not any(folder.iterdir()):
                 folder.rmdir()
         raise
-    write_json(index_path, index)
+    shutil.rmtree(staging, ignore_errors=True)
     return index_path

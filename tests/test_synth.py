@@ -342,11 +342,13 @@ def test_write_scene_set_writes_loadable_scenes_and_index(rig, tmp_path):
         f"{e['name']}.npz" for e in index["splits"]["train"])
 
 
-def test_interrupted_scene_set_leaves_no_index(rig, tmp_path, monkeypatch):
-    """An index is written last and an earlier one removed first: an interrupted run never leaves
-    an index that describes scenes the folder no longer holds (the demo reuses matching sets)."""
+def test_interrupted_scene_set_leaves_the_earlier_set_intact(rig, tmp_path, monkeypatch):
+    """New scenes are written into a staging folder and renamed into place at the end, index
+    last: an interrupted run leaves an earlier set as it was, index included (it used to
+    overwrite the earlier set's files and remove its index), and the staging folder is removed."""
     out = tmp_path / "set"
     write_scene_set(out, rig, height=12, width=14, seed=0, progress=False)
+    before = {path.relative_to(out): path.read_bytes() for path in out.rglob("*") if path.is_file()}
     calls = []
 
     def interrupted_save(scene, path):
@@ -358,13 +360,19 @@ def test_interrupted_scene_set_leaves_no_index(rig, tmp_path, monkeypatch):
     monkeypatch.setitem(write_scene_set.__globals__, "save_scene", interrupted_save)
     with pytest.raises(KeyboardInterrupt):
         write_scene_set(out, rig, height=12, width=14, seed=1, progress=False)
-    assert len(calls) == 1 and not (out / "index.json").exists()
-    assert not calls[0].exists()  # the interrupted run's scenes are removed, not left as a partial split
-    assert (out / "train").is_dir()  # folders that were there before stay
+    assert len(calls) == 1 and not calls[0].exists()
+    assert {path.relative_to(out): path.read_bytes() for path in out.rglob("*") if path.is_file()} == before
+    assert sorted(path.name for path in out.iterdir()) == ["index.json", "test", "train"]  # no staging left
     calls.clear()
     with pytest.raises(KeyboardInterrupt):
         write_scene_set(tmp_path / "fresh" / "nested" / "set", rig, height=12, width=14, seed=1, progress=False)
     assert not (tmp_path / "fresh").exists()  # the folders the failed run made are removed with its scenes
+    # A finished rewrite replaces the set (same names, other seed) and leaves other files alone.
+    monkeypatch.setitem(write_scene_set.__globals__, "save_scene", save_scene)
+    (out / "train" / "notes.txt").write_text("mine")
+    index = json.loads(write_scene_set(out, rig, height=12, width=14, seed=1, progress=False).read_text())
+    assert index["seed"] == 1 and (out / "train" / "notes.txt").read_text() == "mine"
+    assert all((out / entry["file"]).is_file() for split in index["splits"].values() for entry in split)
 
 
 def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tmp_path):
