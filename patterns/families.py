@@ -731,9 +731,18 @@ def make_patterns(
     Returns:
         (M, R, C, 3) float32 display set values in [0, 1].
 
+    Raises:
+        InputError: besides bad arguments, a set with two identical patterns (a grid too small for
+            the family at this M, e.g. top/bottom halves on a single row): a capture would repeat
+            another and the set could not give M independent measurements.
+
     Example:
         >>> make_patterns("olat", 4, preset="ddps")[0, 0, 15, 0].item()  # top-right corner lit
         0.8999999761581421
     """
     vector = default_vector(name, num_patterns, rows, cols, preset, seed, **overrides)
-    return get_family(name).generate(vector, num_patterns, rows, cols, sharpness).float().contiguous()
+    patterns = get_family(name).generate(vector, num_patterns, rows, cols, sharpness).float().contiguous()
+    if torch.unique(patterns.reshape(num_patterns, -1), dim=0).shape[0] < num_patterns:
+        raise InputError(f"{name}: M = {num_patterns} on a {rows} x {cols} grid gives identical patterns "
+                         f"(the grid is too small for this family at this M, or the parameters make them equal)")
+    return patterns

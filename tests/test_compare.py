@@ -207,6 +207,19 @@ def test_unsupported_and_mismatched_methods_are_skipped_with_a_reason(scenes, tm
     assert reasons["ddps_learned_M2"] == reasons["ddps_learned_M4"] == "M is not in pattern_counts"
 
 
+
+def test_a_heuristic_set_with_identical_patterns_is_skipped_with_the_reason(scenes, tmp_path, monkeypatch):
+    # On a grid too small for a family, make_patterns refuses the set (its captures would repeat).
+    def refuse(name, *args, **kwargs):
+        raise InputError(f"{name}: M = 2 on a 1 x 6 grid gives identical patterns")
+
+    monkeypatch.setattr("train.compare.make_patterns", refuse)
+    config = tiny_config(scenes, learned_counts=[], include_olat_woodham=False)
+    methods, skipped, _ = collect_methods(config, load_rig(), tmp_path, progress=False)
+    assert not [m for m in methods if m.kind == "heuristic"]
+    assert {"method": "tri_complementary", "M": 2, "reason": "tri_complementary: M = 2 on a 1 x 6 grid gives identical patterns"} in skipped
+
+
 def test_external_file_on_another_grid_is_skipped_with_a_warning(scenes, tmp_path):
     """One config serves rigs of several grids: a file that does not fit this rig is skipped, with
     the reason in the results and one warning line, not refused."""

@@ -72,7 +72,11 @@ def test_family_shapes_bounds_and_range(name, grid):
             assert all(p.low <= p.default <= p.high for p in params)
             low, high = bounds(name, num_patterns, rows, cols)
             assert low.shape == high.shape == (len(params),)
-            patterns = make_patterns(name, num_patterns, rows, cols, preset=preset)
+            try:
+                patterns = make_patterns(name, num_patterns, rows, cols, preset=preset)
+            except InputError as error:  # e.g. 9..12 halves of a 2 x 3 grid: some repeat
+                assert "identical patterns" in str(error) and (rows, cols) == (2, 3), (name, num_patterns, grid)
+                continue
             assert patterns.shape == (num_patterns, rows, cols, 3)
             assert patterns.dtype == torch.float32
             assert torch.isfinite(patterns).all()
@@ -332,3 +336,12 @@ def test_default_sharpness_gives_binary_edges():
             for count in range(2, 13):
                 patterns = make_patterns(family, count, rows, cols).double()
                 assert ((patterns < 1e-6) | (patterns > 1 - 1e-6)).all(), (family, count, rows, cols)
+
+
+def test_a_grid_too_small_for_a_family_is_refused():
+    # Top/bottom halves on one row, or ramps on a single superpixel, repeat other patterns.
+    with pytest.raises(InputError, match="identical patterns"):
+        make_patterns("mono_complementary", 4, 1, 6)
+    with pytest.raises(InputError, match="identical patterns"):
+        make_patterns("mono_gradient", 4, 1, 1)
+    assert make_patterns("mono_complementary", 2, 1, 6).shape == (2, 1, 6, 3)  # left/right halves still work

@@ -562,7 +562,11 @@ def collect_methods(config: CompareConfig, rig, pattern_dir: Path, progress: boo
             if not family.supports(count, rig.rows, rig.cols):
                 skipped.append({"method": name, "M": count, "reason": f"{name} supports M = {family.min_patterns}..{family.max_patterns(rig.rows, rig.cols)}"})
                 continue
-            patterns = make_patterns(name, count, rig.rows, rig.cols, preset=config.heuristic_preset).numpy()
+            try:
+                patterns = make_patterns(name, count, rig.rows, rig.cols, preset=config.heuristic_preset).numpy()
+            except InputError as error:  # identical patterns on a small grid: a skip, like an unsupported M
+                skipped.append({"method": name, "M": count, "reason": str(error)})
+                continue
             path = pattern_dir / f"heuristic_{name}_M{count}.npz"
             save_patterns(path, patterns, {"family": name, "preset": config.heuristic_preset, "made_by": "displex compare", "rig": rig.name})
             methods.append(Method(f"heuristic_{name}_M{count}", "heuristic", name, name, count, patterns, str(path)))
