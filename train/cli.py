@@ -440,7 +440,7 @@ def _patterns_make(args) -> None:
 
 def _patterns_list(args) -> None:
     from capture_sim.rig import load_rig
-    from patterns.families import FAMILIES
+    from patterns.families import FAMILIES, make_patterns
 
     if args.num_patterns < 1:
         raise InputError(f"--M must be at least 1, got {args.num_patterns}")
@@ -448,6 +448,11 @@ def _patterns_list(args) -> None:
     for name, family in FAMILIES.items():
         if not family.supports(args.num_patterns, rig.rows, rig.cols):
             print(f"{name:<20} (not defined for M={args.num_patterns} on {rig.rows} x {rig.cols}) {family.summary}")
+            continue
+        try:  # the count rule allows it, but on a small grid some patterns may repeat others
+            make_patterns(name, args.num_patterns, rig.rows, rig.cols)
+        except InputError:
+            print(f"{name:<20} (identical patterns for M={args.num_patterns} on {rig.rows} x {rig.cols}) {family.summary}")
             continue
         names = ", ".join(parameter.name for parameter in family.parameters(args.num_patterns, rig.rows, rig.cols))
         print(f"{name:<20} {family.summary}\n{'':<20} parameters at M={args.num_patterns}: {names[:160]}{'...' if len(names) > 160 else ''}")
