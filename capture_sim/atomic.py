@@ -104,15 +104,17 @@ def atomic_path(path: str | Path, suffix: str = "", sync: bool = False):
 def staged_files(folder: str | Path, last: tuple[str, ...] = ()):
     """Yield a temporary folder inside ``folder`` (created if needed) for the files of one command.
 
-    When the block ends normally, every file written into it replaces its namesake in ``folder``
-    (one rename each; the names in ``last`` after the others, e.g. a manifest whose presence
-    says the folder is complete); when it raises, they are discarded (and ``folder`` too if the
-    block created it and it is empty). A command that writes many files during long work thus
+    When the block ends normally, every file written into it (in subfolders too) replaces its
+    namesake at the same place in ``folder``, one rename each. The top-level names in ``last``
+    (e.g. a manifest or an index whose presence says the folder is complete) are removed first and
+    moved in after all the others, so that none ever stands over a mixture of two runs. When the
+    block raises, the files are discarded, and so are the folders it created (``folder`` and any
+    missing parents) if they are empty. A command that writes many files during long work thus
     leaves all of them or none: never new files of some scenes beside an earlier run's results.
     Callers check the final paths first (``refuse_overwriting``): a rename cannot replace a folder.
     """
     folder = Path(folder)
-    created = not folder.exists()
+    created = [path for path in (folder, *folder.parents) if not path.exists()]  # deepest first
     try:
         folder.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=".staging.", dir=folder))
@@ -120,13 +122,18 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = ()):
         raise InputError(f"cannot write into {folder}: {err.strerror or err}") from None
     try:
         yield staging
-        for item in sorted(staging.iterdir(), key=lambda item: (item.name in last, item.name)):
-            os.replace(item, folder / item.name)
+        files = sorted((path.relative_to(staging) for path in staging.rglob("*") if not path.is_dir()),
+                       key=lambda relative: (relative.parts[0] in last, relative.as_posix()))
+        for name in last:
+            (folder / name).unlink(missing_ok=True)
+        for relative in files:
+            (folder / relative).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(staging / relative, folder / relative)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
-        if created:
+        for path in created:
             with contextlib.suppress(OSError):
-                folder.rmdir()  # only if nothing else was put there meanwhile
+                path.rmdir()  # only if nothing else was put there meanwhile
         raise
     shutil.rmtree(staging, ignore_errors=True)
 

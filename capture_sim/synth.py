@@ -15,9 +15,6 @@ Pixels outside the mask have zero OLAT, zero normal and zero depth.
 """
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,7 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import check_replaceable, write_json
+from capture_sim.atomic import check_replaceable, staged_files, write_json
 from capture_sim.errors import MAX_SEED, InputError, check_seed
 from capture_sim.materials import MATERIALS, make_material
 from capture_sim.render import render_olat
@@ -265,16 +262,10 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int
     }
     index_path = out_dir / "index.json"
     check_replaceable(index_path)  # a folder in its place: one clear line before the work
-    # Folders this run creates (the splits, the set's folder and any missing parents), deepest first.
-    new_folders = [folder for folder in (*(out_dir / split for split in index["splits"]), out_dir, *out_dir.parents) if not folder.exists()]
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=".staging.", dir=out_dir))
-    except OSError as err:
-        raise InputError(f"cannot write into {out_dir}: {err.strerror or err}") from None
-    try:
-        # The long synthesis writes into a hidden staging folder: interrupted, it leaves an
-        # earlier set in ``out_dir`` as it was, its index included.
+    # The long synthesis writes into a staging folder: interrupted, it leaves an earlier set in
+    # ``out_dir`` as it was. The index goes last (and the earlier one first), so that no index ever
+    # stands over a mixture of two sets (``displex demo`` reuses a folder whose index matches).
+    with staged_files(out_dir, last=(index_path.name,)) as staging:
         for split, spec, scene in _synthesised(rig, height, width, seed, cast_shadows, "synthesising scenes", progress):
             relative = Path(split) / f"{spec.name}.npz"
             save_scene(scene, staging / relative)
@@ -282,20 +273,5 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int
                 "name": spec.name, "file": relative.as_posix(), "shape": spec.shape,
                 "material": spec.material, "seed": spec.seed,
             })
-        # Then renames only: the earlier index goes first and the new one comes last, so that no
-        # index ever stands over a mixture of two sets (``displex demo`` reuses a folder whose
-        # index matches its settings).
-        index_path.unlink(missing_ok=True)
-        for split, entries in index["splits"].items():
-            (out_dir / split).mkdir(exist_ok=True)
-            for entry in entries:
-                os.replace(staging / entry["file"], out_dir / entry["file"])
-        write_json(index_path, index)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        for folder in new_folders:
-            if folder.is_dir() and not any(folder.iterdir()):
-                folder.rmdir()
-        raise
-    shutil.rmtree(staging, ignore_errors=True)
+        write_json(staging / index_path.name, index)
     return index_path
