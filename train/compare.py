@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import write_json
+from capture_sim.atomic import staged_files, write_json
 from capture_sim.display import display_emission
 from capture_sim.errors import DisplexWarning, InputError, check_seed
 from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, Rig, load_rig, rig_file
@@ -469,9 +469,9 @@ def _learning_runs(config: CompareConfig):
 
 
 def _check_reusable_runs(config: CompareConfig, pattern_dir: Path) -> None:
-    """Refuse (``_reusable``) before anything is written: a folder whose learning or search outputs
-    were made with another config would otherwise be refused only after the heuristic pattern
-    files of the last finished run had been rewritten under it."""
+    """Refuse (``_reusable``) before any learning starts: a folder whose learning or search outputs
+    were made with another config would otherwise be refused only after minutes of the runs
+    before it."""
     for count, seed, rerender in _learning_runs(config):
         _, path, train_config = _learned_output(config, count, seed, rerender, pattern_dir)
         _reusable(path, train_config, "learned patterns")
@@ -567,8 +567,9 @@ def collect_methods(config: CompareConfig, rig, pattern_dir: Path, progress: boo
             except InputError as error:  # identical patterns on a small grid: a skip, like an unsupported M
                 skipped.append({"method": name, "M": count, "reason": str(error)})
                 continue
+            # The file is written with the results (``run_compare``): an interrupted rerun with
+            # another preset would otherwise leave the last results pointing at rewritten files.
             path = pattern_dir / f"heuristic_{name}_M{count}.npz"
-            save_patterns(path, patterns, {"family": name, "preset": config.heuristic_preset, "made_by": "displex compare", "rig": rig.name})
             methods.append(Method(f"heuristic_{name}_M{count}", "heuristic", name, name, count, patterns, str(path)))
     for count, seed, rerender in _learning_runs(config):
         start = time.perf_counter()
@@ -922,12 +923,18 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     }
     results["summary"] = summary_tables(results)
     results["timings"]["total_seconds"] = time.perf_counter() - began
-    report = write_report(results, out_dir, {method.id: method.patterns for method in methods if not isinstance(method.patterns, str)})
-    results["report"] = str(report)
-    # config.json is written with the results, not before the run: a run refused or interrupted
-    # part-way leaves the folder's config, results and report describing the same finished run.
-    write_json(out_dir / "results.json", results)
-    write_json(out_dir / "config.json", resolved)
+    results["report"] = str(out_dir / "report.md")
+    # The heuristic pattern files, report, charts, results and config are moved into place
+    # together: a run refused or interrupted part-way leaves them all describing the last
+    # finished run (learned and searched files are kept per settings, see ``_reusable``).
+    with staged_files(out_dir, last=("results.json", "config.json")) as staging:
+        for method in methods:
+            if method.kind == "heuristic":
+                save_patterns(staging / "patterns" / Path(method.pattern_file).name, method.patterns,
+                              {"family": method.series, "preset": config.heuristic_preset, "made_by": "displex compare", "rig": rig.name})
+        write_report(results, out_dir, {method.id: method.patterns for method in methods if not isinstance(method.patterns, str)}, staging)
+        write_json(staging / "results.json", results)
+        write_json(staging / "config.json", resolved)
     return results
 
 

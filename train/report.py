@@ -569,40 +569,44 @@ def pivot_cell(row: dict, key: str, digits: int) -> str:
     return _fmt(row[key], digits) + note + (f" (mean of {row['seeds']} seeds)" if row["seeds"] > 1 else "")
 
 
-def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
-    """Write ``report.md`` and the charts (``CHARTS``) into ``out_dir``.
+def write_report(results: dict, out_dir: Path, pattern_sets: dict, staging: Path | None = None) -> Path:
+    """Write ``report.md`` and the charts (``CHARTS``) for the output folder ``out_dir``.
 
     Args:
         results: ``run_compare`` results (with ``summary``).
-        out_dir: output folder.
+        out_dir: output folder; the report's links are relative to it, and its charts that this
+            report does not show (an earlier run's) are removed from it.
         pattern_sets: method id -> (M, R, C, 3) patterns, for the pattern figure.
+        staging: folder the files are written into (``capture_sim.atomic.staged_files``, which
+            moves them into ``out_dir``); ``out_dir`` itself by default.
 
     Returns:
-        Path of report.md.
+        Path of report.md as written (inside ``staging`` when given).
     """
     out_dir = Path(out_dir)
+    into = out_dir if staging is None else Path(staging)
     summary = results.get("summary") or summary_tables(results)
     rows = summary["rows"]
     default = results["default_noise"]
     caption = _measurement_caption(results)
     short = f"{len(results['test_scenes'])} test scenes, noise scale {default:g}, analytic PS (OLAT: Woodham); MAE averaged over scenes."
 
-    save_figure(chart_mae_vs_patterns(rows, f"{short} Learned: mean over seeds, bars = std."), out_dir / CHARTS["mae_vs_M"])
+    save_figure(chart_mae_vs_patterns(rows, f"{short} Learned: mean over seeds, bars = std."), into / CHARTS["mae_vs_M"])
     save_figure(chart_mae_vs_cost(rows, "capture_seconds", f"capture time (s) = M x {results['exposure_ms']:g} ms x e / e_white", "Accuracy against capture time",
-                                  short), out_dir / CHARTS["mae_vs_capture_time"])
+                                  short), into / CHARTS["mae_vs_capture_time"])
     save_figure(chart_mae_vs_cost(rows, "compute_seconds", "compute time per scene (s): simulation + reconstruction, CPU",
-                                  "Speed-accuracy: normal error against reconstruction time", short), out_dir / CHARTS["mae_vs_compute_time"])
+                                  "Speed-accuracy: normal error against reconstruction time", short), into / CHARTS["mae_vs_compute_time"])
     save_figure(chart_mae_vs_noise(results, f"{len(results['test_scenes'])} test scenes; analytic PS (OLAT: Woodham); noise scale multiplies the rig's noise variances."),
-                out_dir / CHARTS["mae_vs_noise"])
+                into / CHARTS["mae_vs_noise"])
     written = {"mae_vs_M", "mae_vs_capture_time", "mae_vs_compute_time", "mae_vs_noise"}
     free_rows = (summary.get("specular_free") or {}).get("rows")
     if free_rows:
         save_figure(chart_specular_free(rows, free_rows, f"{short} x: the same scenes, pixels and noise without the specular stacks."),
-                    out_dir / CHARTS["specular_free"])
+                    into / CHARTS["specular_free"])
         written.add("specular_free")
     entries = pattern_entries(results, rows, pattern_sets)
     if entries:
-        save_figure(chart_patterns(entries, "Each row: one pattern set, patterns left to right; superpixel grid as on the panel."), out_dir / CHARTS["patterns"])
+        save_figure(chart_patterns(entries, "Each row: one pattern set, patterns left to right; superpixel grid as on the panel."), into / CHARTS["patterns"])
         written.add("patterns")
     for name in set(CHARTS) - written:  # an earlier run's chart would contradict this report
         (out_dir / CHARTS[name]).unlink(missing_ok=True)
@@ -723,6 +727,6 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict) -> Path:
               + (f", specular-free check {timings['specular_free_seconds']:.0f} s" if "specular_free_seconds" in timings else "")
               + ". All numbers: `results.json`; resolved config: `config.json`; "
               "pattern files: `patterns/`.", ""]
-    path = out_dir / "report.md"
+    path = into / "report.md"
     write_text(path, "\n".join(lines))
     return path
