@@ -237,10 +237,13 @@ def rig_for_scene(rig: Rig, scene: Scene) -> Rig:
     lights = scene.light_positions.astype(np.float64)
     # A distant display is a valid scene (far-field tests), so the unit cannot be told from the
     # distances alone; a grid near the rig's in millimetres (raw DIR calibration, or another
-    # calibration of the same display) can. A far-field scene built as exactly "rig x 1000" is refused too.
-    if float(np.linalg.norm(lights / 1000.0 - rig.light_positions, axis=-1).max()) <= MILLIMETRE_MATCH_M:
-        raise InputError(f"scene {scene.name}: its light positions are rig {rig.name}'s in millimetres; scene files use metres (divide by 1000)")
+    # calibration of the same display) can, when it fits the rig's better than the metres do (a
+    # small display near the camera lies within the tolerance of anything divided by 1000). A
+    # far-field scene built as exactly "rig x 1000" is refused too.
     shift = float(np.linalg.norm(lights - rig.light_positions, axis=-1).max())
+    millimetre_shift = float(np.linalg.norm(lights / 1000.0 - rig.light_positions, axis=-1).max())
+    if millimetre_shift <= MILLIMETRE_MATCH_M and millimetre_shift < shift:
+        raise InputError(f"scene {scene.name}: its light positions are rig {rig.name}'s in millimetres; scene files use metres (divide by 1000)")
     if shift > LIGHT_MISMATCH_M:
         warnings.warn(f"scene {scene.name}: its light positions differ from rig {rig.name}'s by up to {shift:.3f} m; "
                       "the scene's own calibration is used", DisplexWarning, stacklevel=2)

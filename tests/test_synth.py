@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -401,6 +402,17 @@ def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tm
         rig_for_scene(load_rig(), dataclasses.replace(scene, light_positions=recalibrated * 1000))
     with pytest.warns(DisplexWarning, match="differ from rig"):
         rig_for_scene(load_rig(), dataclasses.replace(scene, light_positions=recalibrated))  # in metres: used, with a warning
+    # A small display near the camera: any grid divided by 1000 lies within 0.2 m of its lights,
+    # but its own scenes, in metres, match it exactly and are accepted.
+    from capture_sim.rig import panel_positions
+
+    small = load_rig().replace(light_positions=panel_positions(3, 4, diagonal_inch=12.0), backlight=np.zeros((3, 4)))
+    own = synthesize_scene("sphere", "lambertian", small, height=16, width=20, seed=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.array_equal(rig_for_scene(small, own).light_positions, own.light_positions)
+    with pytest.raises(InputError, match="in millimetres"):
+        rig_for_scene(small, dataclasses.replace(own, light_positions=own.light_positions * 1000))
     negative = scene.diffuse.copy()
     negative[0, 0, 0, 0] = -0.01  # a noisy polarisation split
     with pytest.raises(InputError, match="diffuse has negative radiance"):
