@@ -791,8 +791,9 @@ def least_squares_albedos(captures, emission, points, lights, falloff, normal, l
         seed: seed of that subset.
 
     Returns:
-        diffuse (J, 3) >= 0, specular (J,) >= 0 (zeros when ``specular`` is False); clusters
-        without pixels get NaN rows, for the caller to replace.
+        diffuse (J, 3) >= 0, specular (J,) >= 0 (zeros when ``specular`` is False), and
+        ``solved`` (J,) bool: False for clusters without pixels, whose albedos are 0 and mean
+        nothing (the caller keeps its own start there).
     """
     count = captures.shape[1]
     if count > max_pixels:
@@ -823,9 +824,8 @@ def least_squares_albedos(captures, emission, points, lights, falloff, normal, l
         reduced = (s_s - (ratio * a_s).sum(1)).clamp_min(1e-30)
         rho_s = ((s_i - (ratio * a_i).sum(1)) / reduced).clamp_min(0.0)
         diffuse = (a_i - rho_s[:, None] * a_s) / a_a.clamp_min(1e-30)
-    empty = torch.bincount(labels, minlength=num_basis) == 0
-    diffuse = torch.where(empty[:, None], torch.full_like(diffuse, math.nan), diffuse.clamp_min(0.0))
-    return diffuse.float(), rho_s.float()
+    solved = torch.bincount(labels, minlength=num_basis) > 0
+    return diffuse.clamp_min(0.0).float(), rho_s.float(), solved
 
 
 class BasisModel(torch.nn.Module):
@@ -1139,7 +1139,7 @@ def _initial_model(captures, emission, points, lights, falloff, initial: Initial
     labels, centres = cluster_albedo(initial.albedo, initial.valid, config.num_basis, config.seed)
     specular_init = None
     if config.least_squares_init:
-        diffuse_ls, specular_ls = least_squares_albedos(
+        diffuse_ls, specular_ls, solved = least_squares_albedos(
             captures, emission, points, lights, falloff, initial.normal, labels, config.num_basis, config.specular,
             config.initial_roughness, config.saturation_threshold, seed=config.seed,
         )
@@ -1148,7 +1148,7 @@ def _initial_model(captures, emission, points, lights, falloff, initial: Initial
         # images at the initial normals and roughness could not take the highlights (weakly
         # constrained by some pattern sets): starting there, the fit settled in a minimum with an
         # over-bright basis (held-out PSNR ~28 dB instead of ~36 with some learned M = 4 sets).
-        centres = torch.where(torch.isfinite(diffuse_ls), torch.minimum(diffuse_ls, centres), centres)
+        centres = torch.where(solved[:, None], torch.minimum(diffuse_ls, centres), centres)
         specular_init = specular_ls if config.specular else None
     return BasisModel(initial.normal, labels, centres, config, specular_init)
 

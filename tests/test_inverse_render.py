@@ -321,9 +321,15 @@ def test_least_squares_albedos_are_exact_for_true_geometry():
     captures = render_under_patterns(normals, points, lights, emission, weights, diffuse, specular, roughness, Falloff())
     emission = emission * (0.9 / float(captures.max()))  # below saturation: every equation counts
     captures = captures * (0.9 / float(captures.max()))
-    found_diffuse, found_specular = least_squares_albedos(captures, emission, points, lights, Falloff(), normals, labels, 2, True, 0.5)
+    found_diffuse, found_specular, solved = least_squares_albedos(captures, emission, points, lights, Falloff(), normals, labels, 2, True, 0.5)
     torch.testing.assert_close(found_diffuse, diffuse, rtol=1e-3, atol=1e-4)
     torch.testing.assert_close(found_specular, specular, rtol=1e-3, atol=1e-4)
+    assert solved.tolist() == [True, True]
+    # A cluster without pixels is reported unsolved, with finite (meaningless) albedos.
+    found_diffuse, found_specular, solved = least_squares_albedos(captures, emission, points, lights, Falloff(), normals,
+                                                                  torch.zeros_like(labels), 3, True, 0.5)
+    assert solved.tolist() == [True, False, False]
+    assert torch.isfinite(found_diffuse).all() and torch.isfinite(found_specular).all()
 
 
 def test_normal_search_finds_a_far_start_and_never_worsens():
@@ -521,7 +527,7 @@ def test_least_squares_start_is_bounded_by_the_photometric_stereo_albedo_and_the
     _, centres = cluster_albedo(initial.albedo, initial.valid, 3, config.seed)
 
     def too_bright_and_no_specular(*args, **kwargs):
-        return torch.stack([2.0 * centres[0], 0.5 * centres[1], torch.full((3,), math.nan)]), torch.zeros(3)
+        return torch.stack([2.0 * centres[0], 0.5 * centres[1], torch.zeros(3)]), torch.zeros(3), torch.tensor([True, True, False])
 
     monkeypatch.setattr(inverse_render, "least_squares_albedos", too_bright_and_no_specular)
     model = inverse_render._initial_model(captures, emission, pixels.points, pixels.lights(), Falloff(), initial, config)
