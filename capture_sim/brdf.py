@@ -19,8 +19,20 @@ from capture_sim.errors import InputError
 _EPS = 1e-6
 
 
+MIN_ALPHA = 1e-4
+"""Smallest GGX width alpha = roughness^2: sharper lobes overflow float32 at their peak."""
+
+
 def ggx_distribution(n_dot_h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-    """GGX normal distribution D(h) for cos(theta_h) ``n_dot_h`` and width ``alpha`` (broadcast)."""
+    """GGX normal distribution D(h), in 1/sr.
+
+    Args:
+        n_dot_h: cos(theta_h) in [-1, 1], any shape.
+        alpha: lobe width alpha = roughness^2 > 0, broadcastable with ``n_dot_h``.
+
+    Returns:
+        D, the broadcast shape of the inputs.
+    """
     a2 = alpha * alpha
     # n.h^2 (a2 - 1) + 1 written without cancellation: in float32 a2 - 1 rounds to -1 for small
     # alpha, and the peak (n.h = 1) became 0 / 0 instead of 1 / (pi a2).
@@ -29,7 +41,15 @@ def ggx_distribution(n_dot_h: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor
 
 
 def smith_schlick_ggx(n_dot_l: torch.Tensor, n_dot_v: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
-    """Smith masking-shadowing G with the Schlick-GGX approximation, k = alpha / 2."""
+    """Smith masking-shadowing G with the Schlick-GGX approximation, k = alpha / 2.
+
+    Args:
+        n_dot_l, n_dot_v: cosines to the light and the view, in [0, 1], broadcastable.
+        alpha: lobe width alpha = roughness^2 > 0, broadcastable with them.
+
+    Returns:
+        G in [0, 1], unitless, the broadcast shape of the inputs.
+    """
     k = alpha / 2.0
     return (n_dot_l / (n_dot_l * (1.0 - k) + k)) * (n_dot_v / (n_dot_v * (1.0 - k) + k))
 
@@ -56,7 +76,7 @@ def cook_torrance_specular(
     n_dot_l = (normal * light_dir).sum(-1)
     n_dot_v = (normal * view_dir).sum(-1)
     n_dot_h = (normal * half).sum(-1).clamp(0.0, 1.0)
-    alpha = (roughness * roughness).clamp_min(1e-4)
+    alpha = (roughness * roughness).clamp_min(MIN_ALPHA)
     nl, nv = n_dot_l.clamp_min(_EPS), n_dot_v.clamp_min(_EPS)
     lobe = ggx_distribution(n_dot_h, alpha) * smith_schlick_ggx(nl, nv, alpha) / (4.0 * nl * nv)
     if fresnel == "schlick":

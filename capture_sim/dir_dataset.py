@@ -44,7 +44,6 @@ from capture_sim.rig import Rig
 from capture_sim.scene import MAX_DEPTH_M, Scene
 
 GENERATOR = "displex.dir_dataset"
-LAYOUTS = ("basic", "pms")
 
 
 def dir_file_to_light(file_index, rows: int, cols: int):

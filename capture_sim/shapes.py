@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from capture_sim.errors import InputError, check_array, check_seed
-from capture_sim.geometry import pixel_rays
+from capture_sim.geometry import light_geometry, pixel_rays
 
 GRAZING_COS = 0.05
 """Smallest n . v (cosine between normal and view direction) for a pixel to count as visible."""
@@ -74,7 +74,8 @@ class Shape:
         self.bound_radius = float(bound_radius)
 
     def exit_distance(self, origins: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-        """(N,) distance along unit rays (N, 3) past which they never meet the solid again."""
+        """(N,) distance, metres, along the rays from ``origins`` (N, 3) in unit directions ``dirs``
+        (N, 3), camera frame, past which they never meet the solid again."""
         _, t_exit = _bound_interval(origins, dirs, self.center, self.bound_radius)
         if self.box_local is None:
             return t_exit
@@ -215,9 +216,7 @@ def shadow_visibility(shape: Shape, points: torch.Tensor, normals: torch.Tensor,
     if shape.convex or points.shape[0] == 0:
         return visibility
     origins = points + _SHADOW_OFFSET * normals
-    offset = lights[None, :, :] - origins[:, None, :]  # (N, K, 3)
-    distance = offset.norm(dim=-1)
-    dirs = offset / distance[..., None]
+    dirs, distance = light_geometry(origins, lights, eps=0.0)  # (N, K, 3), (N, K)
     facing = (normals[:, None, :] * dirs).sum(-1) > 0
     pixel_idx, light_idx = torch.nonzero(facing, as_tuple=True)
     for start in range(0, pixel_idx.numel(), _SHADOW_CHUNK_RAYS):

@@ -58,14 +58,15 @@ import numpy as np
 import torch
 from torch.utils.checkpoint import checkpoint
 
+from capture_sim.brdf import MIN_ALPHA
 from capture_sim.errors import InputError, check_array
+from capture_sim.geometry import light_geometry, view_directions
 from reconstruct.photometric_stereo import PSConfig, solve_ps
 
 RENDER_CHUNK_PIXELS = 4096
 """Pixels shaded at once by ``render_under_patterns``: a few (4096, K) temporaries of ~2.4 MB each."""
 
 _EPS = 1e-6
-_MIN_ALPHA = 1e-4  # as capture_sim.brdf: alpha = roughness^2 never below this
 
 
 # ----------------------------------------------------------------------------------------------
@@ -133,12 +134,10 @@ def shading_geometry(points: torch.Tensor, lights: torch.Tensor, falloff: Callab
         inverse_distance = torch.empty((rows, num_lights), dtype=points.dtype)
         falloff_values = torch.empty_like(inverse_distance)
         inverse_half_norm = torch.empty_like(inverse_distance)
-        view = -anchor / anchor.norm(dim=-1, keepdim=True).clamp_min(_EPS)
+        view = view_directions(anchor, _EPS)
         for start in range(0, rows, chunk_pixels):
             block = slice(start, start + chunk_pixels)
-            offset = lights[None, :, :] - anchor[block, None, :]
-            distance = offset.norm(dim=-1).clamp_min(min_distance)
-            light_dirs = offset / distance[..., None]
+            light_dirs, distance = light_geometry(anchor[block], lights, min_distance)
             inverse_distance[block] = 1.0 / distance
             values = torch.as_tensor(falloff(distance), dtype=points.dtype)
             falloff_values[block] = torch.where(torch.isfinite(values) & (values > 0), values, torch.zeros((), dtype=points.dtype))
@@ -244,7 +243,7 @@ class _LobeSum(torch.autograd.Function):
 
 def _specular_sum(n_dot_l_pos, n_dot_h, n_dot_v, weights, specular, roughness):
     """sum_j w_j rho_s,j D_j G_j / (4 (n.l)(n.v)) per pixel and light, (B, K); 0 where n . v <= 0."""
-    alpha = (roughness * roughness).clamp_min(_MIN_ALPHA)  # (J,)
+    alpha = (roughness * roughness).clamp_min(MIN_ALPHA)  # (J,)
     alpha2 = alpha * alpha
     k = alpha / 2.0
     visible = (n_dot_v > 0).to(n_dot_v.dtype)
@@ -345,9 +344,9 @@ def render_under_patterns(
     """Noise-free, unclipped captures of a basis-BRDF scene under patterns, differentiably.
 
     I[m, n, c] = sum_k E[m, k, c] O[k, n, c] with O the OLAT image of ``capture_sim.render.render_olat``
-    (no cast shadows). Pixels are processed in chunks of ``chunk_pixels``; with gradients each
-    chunk is recomputed in the backward pass (activation checkpointing), so memory stays at about
-    one chunk's temporaries plus the (M, N, 3) output.
+    (no cast shadows). Pixels are processed in chunks of ``chunk_pixels``; with gradients and more
+    than one chunk, each chunk is recomputed in the backward pass (activation checkpointing), so
+    memory stays at about one chunk's temporaries plus the (M, N, 3) output.
 
     Args:
         normals: (N, 3) normals, camera frame (normalised here; visible ones have n . v > 0).
@@ -562,9 +561,8 @@ def olat_least_squares(captures, plan: EmissionPlan, points, lights, falloff, sh
     for start in range(0, count, chunk_pixels):
         block = slice(start, start + chunk_pixels)
         observed = captures[:, block].double().permute(1, 0, 2)  # (B, M, 3)
-        offset = plan_lights[None] - points[block].double()[:, None]
-        distance = offset.norm(dim=-1).clamp_min(1e-3)
-        lighting = offset / distance[..., None] * torch.as_tensor(falloff(distance), dtype=torch.float64)[..., None]  # f l, (B, M, 3)
+        light_dirs, distance = light_geometry(points[block].double(), plan_lights, 1e-3)
+        lighting = light_dirs * torch.as_tensor(falloff(distance), dtype=torch.float64)[..., None]  # f l, (B, M, 3)
         lighting = torch.nan_to_num(lighting, nan=0.0, posinf=0.0, neginf=0.0)
         positive_gain = gain > 0
         ratio = torch.where(positive_gain, observed / gain.clamp_min(1e-30), torch.zeros((), dtype=torch.float64))  # y, (B, M, 3)
@@ -595,7 +593,7 @@ def olat_least_squares(captures, plan: EmissionPlan, points, lights, falloff, sh
         normal[block] = torch.where(good[:, None], unit, torch.zeros((), dtype=torch.float64))
         albedo[block] = torch.where(good[:, None], channel_albedo.clamp_min(0.0), torch.zeros((), dtype=torch.float64))
         valid[block] = good
-    view = -points.double() / points.double().norm(dim=-1, keepdim=True).clamp_min(_EPS)
+    view = view_directions(points.double(), _EPS)
     valid &= (normal * view).sum(-1) > 0
     return normal, albedo, valid
 
@@ -696,7 +694,7 @@ def initial_estimate(captures, emission, points, lights, falloff, ps_config: PSC
             normal, albedo, valid = result.normal, result.albedo, result.valid
     valid = valid & torch.isfinite(normal).all(-1) & torch.isfinite(albedo).all(-1)
     points = points.float()
-    view = -points / points.norm(dim=-1, keepdim=True).clamp_min(_EPS)
+    view = view_directions(points, _EPS)
     normal = torch.where(valid[:, None], normal.float(), view)
     albedo = torch.where(valid[:, None], math.pi * albedo.float(), torch.zeros((), dtype=torch.float32))
     filled = valid
@@ -1014,7 +1012,15 @@ def grid_neighbours(pixel_index: torch.Tensor, height: int, width: int) -> torch
 
 
 def capture_residual(rendered: torch.Tensor, captures: torch.Tensor, saturated: torch.Tensor) -> torch.Tensor:
-    """Rendered minus captured, except that a saturated capture only penalises a darker rendering."""
+    """Rendered minus captured, except that a saturated capture only penalises a darker rendering.
+
+    Args:
+        rendered, captures: linear images of one layout, e.g. (N, M, 3) or (M, N, 3), full scale 1.
+        saturated: bool, the same shape: the capture reached the saturation threshold.
+
+    Returns:
+        The residual, the same shape.
+    """
     residual = rendered - captures
     return torch.where(saturated, residual.clamp_max(0.0), residual)
 
@@ -1191,6 +1197,16 @@ def search_normals(model: "BasisModel", index: torch.Tensor, geometry: ShadingGe
     ``search_refine_deg`` of the best. The lowest sum of squared residuals wins, so no pixel
     gets worse. Changes ``model.normal_raw`` in place.
 
+    Args:
+        model: the fit's parameters (normals of all N pixels).
+        index: (B,) long, the pixels to search.
+        geometry, plan: shading geometry of all N pixels and the patterns' emission.
+        pixels_first: (N, M, 3) captures, pixel-major.
+        saturated: (N, M, 3) bool, saturated captures (``capture_residual``).
+        config: search settings (``search_candidates``, ``search_refine_deg``).
+        min_cosine: smallest n . v of a candidate.
+        work: candidate renderings per batch (bounds the temporaries).
+
     Returns:
         (B,) bool, the pixels whose normal changed.
     """
@@ -1218,7 +1234,11 @@ def search_normals(model: "BasisModel", index: torch.Tensor, geometry: ShadingGe
 
 
 def pixel_rmse(model: "BasisModel", geometry: ShadingGeometry, plan: EmissionPlan, pixels_first, saturated, chunk_pixels: int = 4096) -> torch.Tensor:
-    """(N,) RMSE of every pixel's rendering at the model's current parameters."""
+    """(N,) RMSE of every pixel's rendering at the model's current parameters, in capture units.
+
+    ``pixels_first`` (N, M, 3) are the captures, pixel-major, and ``saturated`` (N, M, 3) bool
+    their saturated entries (``capture_residual``); pixels are rendered ``chunk_pixels`` at a time.
+    """
     count = pixels_first.shape[0]
     errors = torch.empty(count)
     with torch.no_grad():
@@ -1234,6 +1254,7 @@ def pixel_rmse(model: "BasisModel", geometry: ShadingGeometry, plan: EmissionPla
 def search_round(model: "BasisModel", geometry: ShadingGeometry, plan: EmissionPlan, pixels_first, saturated, config: FitConfig) -> torch.Tensor:
     """One round of normal search: pixels whose RMSE exceeds ``search_residual_ratio`` times the
     median (at most ``search_max_fraction`` of them, worst first) search their normal.
+    ``pixels_first`` (N, M, 3) and ``saturated`` (N, M, 3) as in ``pixel_rmse``.
 
     Returns:
         (S,) long indices of the pixels whose normal changed.
@@ -1308,11 +1329,10 @@ def _optimise(model, captures, emission, points, lights, falloff, pixel_index, h
         loss = rmse
         if config.tv_weight > 0:
             pairs = neighbours if index is None else neighbours[index]
-            own = normal if index is None else normal
             present = pairs >= 0
             if bool(present.any()):
                 neighbour_normals = model.normals(pairs.clamp_min(0).reshape(-1)).reshape(-1, 2, 3)
-                difference = (own[:, None, :] - neighbour_normals).abs().sum(-1)
+                difference = (normal[:, None, :] - neighbour_normals).abs().sum(-1)
                 tv = (difference * present).sum() / present.sum()
                 loss = loss + config.tv_weight * tv
 

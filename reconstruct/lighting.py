@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from capture_sim.errors import InputError, check_array
+from capture_sim.geometry import view_directions
 from capture_sim.rig import Falloff
 
 SYMMETRIC_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
@@ -106,7 +107,7 @@ class LightField:
         self.block_size = block_size
         self.cache_block = min(block_size, max(64, CACHE_FLOATS // max(1, lights.shape[0])))
         self._lights_t = lights.T.contiguous()
-        self.view = -points / points.norm(dim=1, keepdim=True).clamp_min(torch.finfo(points.dtype).tiny ** 0.5)
+        self.view = view_directions(points, torch.finfo(points.dtype).tiny ** 0.5)
         self._corners = lights[extreme_lights(lights)]
 
     @property
@@ -336,9 +337,10 @@ def emission_scale(emission: torch.Tensor) -> torch.Tensor:
 
 
 def finite_albedo(albedo: torch.Tensor) -> torch.Tensor:
-    """Albedo (any shape, >= 0) divided back by ``emission_scale`` with +inf (an emission near the
-    dtype's smallest normal number) replaced by the dtype's largest finite value. A clamp, not
-    ``nan_to_num``: a NaN would be a solver bug, not something to turn into a plausible 0."""
+    """Albedo (any shape, >= 0; callers have divided it back by ``emission_scale``) with +inf (from
+    an emission near the dtype's smallest normal number) replaced by the dtype's largest finite
+    value. A clamp, not ``nan_to_num``: a NaN would be a solver bug, not something to turn into a
+    plausible 0."""
     return albedo.clamp(max=torch.finfo(albedo.dtype).max)
 
 

@@ -31,6 +31,7 @@ from typing import Callable
 import torch
 
 from capture_sim.errors import InputError, check_array
+from capture_sim.geometry import light_geometry
 from reconstruct.inverse_render import FitConfig, FitProblem, InitialEstimate, render_under_patterns
 from reconstruct.relight import pooled_psnr
 
@@ -181,28 +182,31 @@ def light_spread(points: torch.Tensor, lights: torch.Tensor, falloff: Callable) 
     Returns:
         ``{"max_direction_deg", "mean_direction_deg"}``: angle between each pixel's direction to
         each light and the centroid's; ``"max_falloff_ratio_deviation"``: max |f(x)/f(centroid) - 1|.
+
+    Raises:
+        InputError: the falloff is not positive and finite at a point or the centroid.
     """
     check_array("points", points, ("N", 3))
     check_array("lights", lights, ("K", 3))
     points, lights = points.double(), lights.double()
     centroid = points.mean(0, keepdim=True)
 
-    def directions(anchor):
-        offset = lights[None] - anchor[:, None]
-        distance = offset.norm(dim=-1).clamp_min(1e-9)
-        return offset / distance[..., None], distance
-
-    centre_dirs, centre_distance = directions(centroid)
+    centre_dirs, centre_distance = light_geometry(centroid, lights)
     centre_falloff = torch.as_tensor(falloff(centre_distance), dtype=torch.float64)
+    unusable = InputError("light_spread: the falloff is not positive and finite over the object")
+    if not bool(((centre_falloff > 0) & torch.isfinite(centre_falloff)).all()):
+        raise unusable
     max_angle, angle_sum, max_ratio = 0.0, 0.0, 0.0
     for start in range(0, points.shape[0], 4096):
-        dirs, distance = directions(points[start : start + 4096])
+        dirs, distance = light_geometry(points[start : start + 4096], lights)
         cosine = (dirs * centre_dirs).sum(-1).clamp(-1.0, 1.0)
         angle = torch.rad2deg(torch.acos(cosine))
         max_angle = max(max_angle, float(angle.max()))
         angle_sum += float(angle.sum())
         ratio = torch.as_tensor(falloff(distance), dtype=torch.float64) / centre_falloff
-        max_ratio = max(max_ratio, float((ratio - 1.0).abs().nan_to_num(nan=math.inf).max()))
+        if not bool(((ratio > 0) & torch.isfinite(ratio)).all()):
+            raise unusable
+        max_ratio = max(max_ratio, float((ratio - 1.0).abs().max()))
     return {
         "max_direction_deg": max_angle,
         "mean_direction_deg": angle_sum / (points.shape[0] * lights.shape[0]),

@@ -341,13 +341,13 @@ def _check_inputs(captures, emission, points, lights, config, chunk_size):
     check_solver_inputs(captures, emission, points, lights, config, chunk_size, PSConfig)
 
 
-def solve_pixels(solve_block, captures, emission, points, pixel_index, lights, config, chunk_size) -> PSResult:
+def solve_pixels(solve_block, captures, emission, points, pixel_index, lights, config) -> PSResult:
     """Shared driver: run ``solve_block`` over the pixels ``pixel_index`` (or all) of flat inputs.
 
     Args:
         solve_block: (captures (M, n, 3), lighting (K, 12 M), points (n, 3), lights, config) -> PSResult.
         captures: (M, P, 3); points: (P, 3); pixel_index: (N,) long indices into P, or None for all.
-        emission, lights, config, chunk_size: as ``solve_ps``.
+        emission, lights, config: as ``solve_ps`` (its ``chunk_size`` reaches ``solve_block``).
     """
     # At least float32: float16 moments and condition numbers overflow.
     dtype = torch.promote_types(torch.promote_types(captures.dtype, emission.dtype), torch.float32)
@@ -415,7 +415,7 @@ def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSC
     def solve_block(block_captures, lighting, block_points, block_lights, block_config):
         return _solve_block(block_captures, lighting, block_points, block_lights, falloff, block_config, chunk_size)
 
-    return solve_pixels(solve_block, captures, emission, points, None, lights, config, chunk_size)
+    return solve_pixels(solve_block, captures, emission, points, None, lights, config)
 
 
 def check_image_inputs(captures, points, mask):
@@ -451,11 +451,19 @@ def scatter_result(result: PSResult, pixel_index: torch.Tensor, height: int, wid
     )
 
 
+CHECK_PIXELS = 1 << 14
+"""Masked pixels per block of ``check_masked_inputs`` (28 MB of a 144-light float32 OLAT stack)."""
+
+
 def check_masked_inputs(check, flat_captures, emission, flat_points, pixel_index, lights, config, chunk_size) -> None:
     """Run a solver's input ``check`` on the masked pixels only: values outside the mask (e.g. NaN
-    depth in the background of a real capture) are never read."""
-    masked_points = torch.as_tensor(flat_points)[pixel_index]
-    check(flat_captures[:, pixel_index] if isinstance(flat_captures, torch.Tensor) else flat_captures, emission, masked_points, lights, config, chunk_size)
+    depth in the background of a real capture) are never read. The check runs block by block, so
+    the masked captures are never copied whole (a full-frame OLAT stack is hundreds of MB)."""
+    if not isinstance(flat_captures, torch.Tensor):
+        check(flat_captures, emission, torch.as_tensor(flat_points)[pixel_index], lights, config, chunk_size)
+        return
+    for block in pixel_index.split(CHECK_PIXELS):  # one empty block when no pixel is masked
+        check(flat_captures[:, block], emission, torch.as_tensor(flat_points)[block], lights, config, chunk_size)
 
 
 def image_pixels(captures, points, mask):
@@ -494,5 +502,5 @@ def solve_ps_image(
     def solve_block(block_captures, lighting, block_points, block_lights, block_config):
         return _solve_block(block_captures, lighting, block_points, block_lights, falloff, block_config, chunk_size)
 
-    result = solve_pixels(solve_block, flat_captures, emission, flat_points, pixel_index, lights, config, chunk_size)
+    result = solve_pixels(solve_block, flat_captures, emission, flat_points, pixel_index, lights, config)
     return scatter_result(result, pixel_index, captures.shape[1], captures.shape[2])

@@ -275,7 +275,10 @@ def relative_residual(normal: torch.Tensor, moments: Moments) -> torch.Tensor:
 
 
 def alternation(albedo: torch.Tensor, moments: Moments, damping: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Phi: albedo -> normal given albedo -> albedo given that normal. Returns (albedo, normal)."""
+    """Phi: albedo -> normal given albedo -> albedo given that normal.
+
+    ``albedo`` (3, N) per channel and pixel; returns the new albedo (3, N) and the unit normal
+    (3, N), camera frame (``moments``: the N pixels' moments, ``damping``: relative damping)."""
     normal = normal_step(albedo, moments, damping)
     return albedo_step(normal, moments, damping), normal
 

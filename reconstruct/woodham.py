@@ -27,6 +27,7 @@ import torch
 from capture_sim.errors import InputError, check_array
 from reconstruct.lighting import LightField, emission_scale, lighting_matrix, olat_moments
 from reconstruct.photometric_stereo import (
+    MAX_PIXELS_PER_SOLVE,
     PatternEvaluator,
     PSResult,
     capture_flags,
@@ -43,9 +44,6 @@ from reconstruct.photometric_stereo import (
 )
 from reconstruct.pixel_solve import Moments, albedo_step, damped_solve, relative_residual, scaled_moments, unit
 from reconstruct.shadow_search import restarted_search
-
-MAX_PIXELS_PER_SOLVE = 1 << 19
-"""Pixels solved together (a full 512 x 612 image is one solve; larger inputs are split)."""
 
 
 @dataclass(frozen=True)

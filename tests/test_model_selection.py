@@ -108,6 +108,11 @@ def test_light_spread_closed_form():
     centre_sq = 0.05**2 + 0.25  # 1/d^2 falloff relative to the centroid's: d_c^2 / d^2
     deviations = (abs(centre_sq / 0.25 - 1), abs(centre_sq / (0.1**2 + 0.25) - 1))
     assert spread["max_falloff_ratio_deviation"] == pytest.approx(max(deviations), rel=1e-9)
+    # A falloff that is not positive and finite everywhere is refused, not reported as inf or NaN.
+    from capture_sim.errors import InputError
+
+    with pytest.raises(InputError, match="falloff is not positive and finite"):
+        light_spread(points, lights, lambda distance: 1.0 / (distance - 0.5))  # a pole at the first point
 
 
 def _far_rig(factor: float = 200.0):

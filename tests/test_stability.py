@@ -168,7 +168,7 @@ def test_woodham_degenerate_inputs_stay_finite(problem):
     assert torch.isfinite(black.normal).all() and not black.valid.any()
 
 
-def test_bad_inputs_and_background_nan_from_the_review(problem):
+def test_bad_inputs_and_background_nan_from_the_review(problem, monkeypatch):
     """Inputs found to raise raw Python errors, and NaN outside the mask of image solves."""
     from capture_sim.errors import InputError
     from reconstruct.photometric_stereo import solve_ps_image
@@ -203,6 +203,16 @@ def test_bad_inputs_and_background_nan_from_the_review(problem):
     assert torch.isfinite(result.normal).all()
     woodham = solve_woodham_image(captures, problem["emission"], points, scene.mask, lights, Falloff())
     assert torch.isfinite(woodham.normal).all()
+    # Inside the mask, NaN is refused wherever it is: the masked pixels are checked in blocks.
+    from reconstruct import photometric_stereo
+
+    last = torch.nonzero(scene.mask.reshape(-1)).max()
+    captures.reshape(captures.shape[0], -1, 3)[1, last, 2] = float("nan")
+    with monkeypatch.context() as patch:
+        patch.setattr(photometric_stereo, "CHECK_PIXELS", 3)
+        for solve in (solve_ps_image, solve_woodham_image):
+            with pytest.raises(InputError, match="captures"):
+                solve(captures, problem["emission"], points, scene.mask, lights, Falloff())
 
 
 @pytest.mark.parametrize("factor", [1e-25, 1e20])

@@ -27,6 +27,7 @@ from capture_sim.render import render_olat
 from capture_sim.simulator import LightTransport, light_transport, simulate
 from patterns.families import make_patterns
 from patterns.parameterization import logits_to_patterns, patterns_to_logits
+from reconstruct.metrics import angular_error_deg
 from reconstruct.photometric_stereo import solve_ps
 from reconstruct.published import incident_field, solve_published
 from reconstruct.unrolled_ps import solve_ps_unrolled
@@ -194,7 +195,7 @@ def bench_ps(num_patterns: int = 4, repeats: int = 5, seed: int = 0) -> dict:
         single_thread = median_seconds(forward_backward, repeats, warmup=0)
     finally:
         torch.set_num_threads(threads)
-    errors = torch.rad2deg(torch.acos((estimate * true_normal).sum(-1).clamp(-1, 1)))
+    errors = angular_error_deg(estimate, true_normal)
     replica = published_ps_seconds(capture.captures, capture.emission, points, lights, falloff, repeats)
     scale = num_pixels / PUBLISHED_PIXELS
     return {
