@@ -23,6 +23,16 @@ class DisplexWarning(UserWarning):
     one ``displex: warning:`` line."""
 
 
+def one_line(text) -> str:
+    """``str(text)`` with control characters escaped (a newline in a scene's meta name or a file
+    name would otherwise split a one-line message or a table row): a newline becomes the two
+    characters backslash and n."""
+    text = str(text)
+    if text.isprintable():
+        return text
+    return "".join(char if char.isprintable() else char.encode("unicode_escape").decode("ascii") for char in text)
+
+
 MAX_SEED = 2**32 - 1
 """Largest seed accepted. Seeds derived from it (seed * 1000 + scene index and the like) stay
 well inside the 64-bit range of torch's and numpy's generators."""

@@ -15,7 +15,7 @@ import torch
 
 from capture_sim.array_files import read_arrays, read_meta
 from capture_sim.atomic import save_npz, strict_json
-from capture_sim.errors import DisplexWarning, InputError, check_array
+from capture_sim.errors import DisplexWarning, InputError, check_array, one_line
 from capture_sim.geometry import points_from_depth
 from capture_sim.rig import Camera, Rig
 
@@ -54,7 +54,7 @@ class Scene:
 
     @property
     def name(self) -> str:
-        return str(self.meta.get("name", "scene"))
+        return one_line(self.meta.get("name", "scene"))
 
     @property
     def height(self) -> int:
@@ -96,9 +96,9 @@ class Scene:
 
 def validate_scene(scene: Scene) -> None:
     """Raise ``InputError`` with one readable line if the scene breaks DESIGN section 7."""
-    name = f"scene {scene.meta.get('name', '')}".strip()
+    name = f"scene {one_line(scene.meta.get('name', ''))}".strip()
     if "file" in scene.meta:  # the meta name may not say which file is broken
-        name += f" ({scene.meta['file']})"
+        name += f" ({one_line(scene.meta['file'])})"
     check_array(f"{name}: olat", scene.olat, ("K", "H", "W", 3))
     num_lights, height, width, _ = scene.olat.shape
     _check_radiance(name, "olat", scene.olat)
@@ -121,8 +121,9 @@ def validate_scene(scene: Scene) -> None:
             raise InputError(f"{name}: {key} must hold {'numbers' if key == 'K_cam' else 'floating-point values'}, got dtype {dtype}")
     check_array(f"{name}: K_cam", scene.K_cam, (3, 3))
     intrinsics = np.asarray(scene.K_cam, dtype=np.float64)
-    if not (intrinsics[0, 0] > 0 and intrinsics[1, 1] > 0 and np.array_equal(intrinsics[2], [0.0, 0.0, 1.0])):
-        raise InputError(f"{name}: K_cam must have fx, fy > 0 and last row (0, 0, 1)")
+    # Upper triangular with a positive diagonal, so invertible; K[1, 0] would otherwise be ignored.
+    if not (intrinsics[0, 0] > 0 and intrinsics[1, 1] > 0 and intrinsics[1, 0] == 0 and np.array_equal(intrinsics[2], [0.0, 0.0, 1.0])):
+        raise InputError(f"{name}: K_cam must be upper triangular with fx, fy > 0 and last row (0, 0, 1), got {intrinsics.tolist()}")
     check_array(f"{name}: light_positions", scene.light_positions, ("R", "C", 3))
     rows, cols = scene.light_positions.shape[:2]
     if rows * cols != num_lights:

@@ -63,7 +63,11 @@ def test_bad_inputs_give_one_line_and_status_2(tmp_path, scene_file, capsys):
     arrays["olat"] = arrays["olat"].copy()
     arrays["olat"][0, 0, 0, 0] = np.nan
     np.savez(nan_scene, **arrays)
+    newline_scene = tmp_path / "newline.npz"
+    meta = json.loads(str(arrays["meta"]))
+    np.savez(newline_scene, **{**arrays, "meta": np.array(json.dumps({**meta, "name": "bad\nname"}))})
     cases = [
+        ["evaluate", "--scenes", str(newline_scene), "--patterns", str(good)],  # a newline in the name, NaN in the stack
         ["simulate", "--scene", str(tmp_path / "missing.npz"), "--patterns", str(good), "--out", str(tmp_path / "a")],
         ["simulate", "--scene", str(nan_scene), "--patterns", str(good), "--out", str(tmp_path / "b")],
         ["simulate", "--scene", str(scene_file), "--patterns", str(outside), "--out", str(tmp_path / "c")],

@@ -391,6 +391,11 @@ def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tm
         validate_scene(dataclasses.replace(scene, normal=2 * scene.normal))
     with pytest.raises(InputError, match="K_cam"):
         validate_scene(dataclasses.replace(scene, K_cam=np.zeros((3, 3))))
+    sheared = scene.K_cam.copy()
+    sheared[1, 0] = sheared[0, 0]  # with the same skew, singular; pixel_rays would ignore it
+    sheared[0, 1] = sheared[0, 0]
+    with pytest.raises(InputError, match="K_cam must be upper triangular"):
+        validate_scene(dataclasses.replace(scene, K_cam=sheared))
     with pytest.raises(InputError, match="depth must be in metres, but its median inside the mask is 4.*millimetres"):
         validate_scene(dataclasses.replace(scene, depth=scene.depth * 1000))
     from capture_sim.scene import rig_for_scene

@@ -12,7 +12,7 @@ import warnings
 from pathlib import Path
 
 from capture_sim.atomic import check_output_folder, refuse_overwriting, separate_json, strict_json
-from capture_sim.errors import DisplexWarning, InputError, check_thread_count
+from capture_sim.errors import DisplexWarning, InputError, check_thread_count, one_line
 from capture_sim.rig import DEFAULT_RIG, rig_file
 
 NOISE_CHOICES = ("off", "default")
@@ -462,7 +462,7 @@ def _show_warning(message, category, filename, lineno, file=None, line=None, _de
     if issubclass(category, DisplexWarning):
         from tqdm import tqdm
 
-        tqdm.write(f"displex: warning: {message}", file=sys.stderr)  # on its own line, above any progress bar
+        tqdm.write(f"displex: warning: {one_line(message)}", file=sys.stderr)  # on its own line, above any progress bar
     else:
         _default(message, category, filename, lineno, file, line)
 
@@ -479,7 +479,7 @@ def _run(argv: list[str] | None) -> int:
     try:
         args = build_parser().parse_args(argv)
     except _UsageError as err:
-        print(f"displex: error: {str(err).removeprefix('displex ').removeprefix('displex: ')}", file=sys.stderr)
+        print(f"displex: error: {one_line(str(err).removeprefix('displex ').removeprefix('displex: '))}", file=sys.stderr)
         return 2
     if not args.torch_threads:
         return _handle(args)
@@ -503,10 +503,10 @@ def _handle(args) -> int:
         print(f"\ndisplex: interrupted{'; ' + hint if hint else ''}", file=sys.stderr)
         return 130  # the shell's status for a SIGINT
     except InputError as err:
-        print(f"displex: error: {err}", file=sys.stderr)
+        print(f"displex: error: {one_line(err)}", file=sys.stderr)
         return 2
     except FileNotFoundError as err:
-        print(f"displex: error: file not found: {err.filename}", file=sys.stderr)
+        print(f"displex: error: file not found: {one_line(err.filename)}", file=sys.stderr)
         return 2
     except BrokenPipeError:
         # The reader of our output went away (``displex patterns list | head -1``): not an error
@@ -515,7 +515,7 @@ def _handle(args) -> int:
         return 1
     except OSError as err:
         name = os.fsdecode(err.filename) if err.filename is not None else None
-        print(f"displex: error: {err.strerror or err}{': ' + name if name else ''}", file=sys.stderr)
+        print(f"displex: error: {one_line(err.strerror or err)}{': ' + one_line(name) if name else ''}", file=sys.stderr)
         return 2
     except (MemoryError, RuntimeError) as err:
         # torch reports a failed CPU allocation as a RuntimeError; anything else is a bug.
