@@ -284,6 +284,11 @@ def test_evaluate_out_is_written_all_or_nothing(tmp_path, scene_file, capsys, mo
         assert capsys.readouterr().err.strip().splitlines()[-1] == "displex: error: the second scene is bad"
     assert {path.name: path.read_bytes() for path in out.iterdir()} == before
     assert not fresh.exists()
+    # A finished run with other scenes replaces the earlier one's maps: none of a scene it did not
+    # evaluate stays beside its results.json.
+    monkeypatch.setattr(evaluate_command, "evaluate_scene", original)
+    assert run(["evaluate", "--patterns", "olat", "--scenes", str(other), "--out", str(out)]) == 0
+    assert sorted(path.name for path in out.iterdir()) == sorted(["results.json", "summary.png"] + [f"other{ending}" for ending in evaluate_command.SCENE_OUTPUT_ENDINGS])
 
 
 def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeypatch):
@@ -442,7 +447,7 @@ def test_search_command_writes_trace_and_tensorboard_log(tmp_path, scene_file, c
     assert run(argv[:-1] + [str(tmp_path / "other.npz"), "--maxeval", "0"]) == 2
 
 
-def test_review_fixes_rig_values_stale_captures_and_logdir(tmp_path, scene_file, capsys):
+def test_review_fixes_rig_values_stale_captures_and_logdir(tmp_path, scene_file, capsys, monkeypatch):
     """A rig whose camera.exposure_ms is not a number or whose working distance is not positive is
     refused; a second simulate with fewer patterns removes the first one's extra captures; an
     unusable --logdir is one error line; non-finite config values are written as strings."""
@@ -468,6 +473,16 @@ def test_review_fixes_rig_values_stale_captures_and_logdir(tmp_path, scene_file,
     for patterns in (many, few):
         assert run(["simulate", "--scene", str(scene_file), "--patterns", str(patterns), "--out", str(out), "--noise", "off"]) == 0
     assert sorted(p.name for p in out.glob("capture_*.png")) == ["capture_000.png"]
+    # An interrupted rerun leaves the last run's files whole (they are staged, then moved in).
+    finished = {path.name: path.read_bytes() for path in out.iterdir()}
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr("train.simulate_command.save_figure", interrupted)
+        assert run(["simulate", "--scene", str(scene_file), "--patterns", str(many), "--out", str(out), "--noise", "off"]) == 130
+    assert {path.name: path.read_bytes() for path in out.iterdir()} == finished
     blocker = tmp_path / "a_file"
     blocker.write_text("")
     capsys.readouterr()

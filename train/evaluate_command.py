@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,14 +67,28 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
     inputs = [("scene file", file) for file in files] + [("pattern file", None if config.patterns == "olat" else config.patterns),
                                                           ("rig file", rig_file(config.rig))]
     refuse_overwriting([("--json", json_path), *_out_files(config.out, files)], inputs)
+    previous = [] if config.out is None else _previous_scene_outputs(Path(config.out))
     with contextlib.ExitStack() as stack:
         # Files for --out are staged and land together at the end: a failure part-way (a bad
         # later scene, an unwritable --json) leaves no new maps beside an earlier run's results.
-        staging = None if config.out is None else stack.enter_context(staged_files(config.out))
+        staging = None if config.out is None else stack.enter_context(staged_files(config.out, last=("results.json",)))
         document = _evaluate_scenes(config, scenes, files, rig, patterns, settings, staging, progress)
         if json_path is not None:
             write_json(json_path, document)
+    for stale in sorted(set(previous) - {path for _, path in _out_files(config.out, files)}):  # maps of scenes not in this run
+        stale.unlink(missing_ok=True)
     return document
+
+
+def _previous_scene_outputs(out: Path) -> list[Path]:
+    """The per-scene files of the scenes an earlier ``evaluate --out`` into ``out`` listed in its
+    results.json (only names it writes itself, so a hand-edited file cannot delete others)."""
+    try:
+        files = json.loads((out / "results.json").read_text()).get("scene_files", [])
+    except (OSError, ValueError, AttributeError):
+        return []
+    return [out / f"{Path(file).stem}{ending}" for file in files if isinstance(file, str) and Path(file).stem
+            for ending in SCENE_OUTPUT_ENDINGS]
 
 
 def _out_files(out: Path | None, files: list[Path]) -> list[tuple[str, Path]]:

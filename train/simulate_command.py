@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from capture_sim.atomic import check_output_folder, refuse_overwriting, save_npy, write_json
+from capture_sim.atomic import check_output_folder, refuse_overwriting, save_npy, staged_files, write_json
 from capture_sim.errors import InputError, check_seed
 from capture_sim.png import write_png
 from capture_sim.rig import DEFAULT_RIG, Rig, load_rig, rig_file
@@ -109,11 +109,6 @@ def run_simulate(config: SimulateConfig) -> dict:
         )
     images = transport.to_image(capture.captures).numpy().astype(np.float32)
     previous = _previous_captures(out)
-    save_npy(out / "captures.npy", images)
-    for name, image in zip(names, images):
-        write_png(out / name, np.round(image * 65535).astype(np.uint16))
-    for stale in sorted(set(previous) - set(names)):  # an earlier run with more patterns
-        (out / stale).unlink(missing_ok=True)
     meta = {
         "scene": str(config.scene),
         "patterns": str(config.patterns),
@@ -131,16 +126,24 @@ def run_simulate(config: SimulateConfig) -> dict:
         "files": names,
         "formula": "captures = q(clip(exposure * sum_k scale * (P[m,k] + backlight[k]) ** gamma * olat[k] + noise))",
     }
-    write_json(out / "meta.json", meta)
     shown = images[:SHEET_CAPTURES]
-    fig = image_grid(
-        [for_display(image) for image in shown],
-        [f"pattern {index}" for index in range(len(shown))],
-        f"Simulated captures of {scene.name}",
-        f"{len(images)} patterns{f' (the first {len(shown)} shown)' if len(shown) < len(images) else ''}, exposure "
-        f"{capture.exposure:.4g} ({meta['exposure_mode']}), noise {config.noise}; shown with a 1/2.2 display gamma.",
-    )
-    save_figure(fig, out / "contact_sheet.png")
+    # Written into a staging folder and moved into place at the end (meta.json last): an
+    # interrupted run leaves an earlier run's files whole.
+    with staged_files(out, last=("meta.json",)) as staging:
+        save_npy(staging / "captures.npy", images)
+        for name, image in zip(names, images):
+            write_png(staging / name, np.round(image * 65535).astype(np.uint16))
+        fig = image_grid(
+            [for_display(image) for image in shown],
+            [f"pattern {index}" for index in range(len(shown))],
+            f"Simulated captures of {scene.name}",
+            f"{len(images)} patterns{f' (the first {len(shown)} shown)' if len(shown) < len(images) else ''}, exposure "
+            f"{capture.exposure:.4g} ({meta['exposure_mode']}), noise {config.noise}; shown with a 1/2.2 display gamma.",
+        )
+        save_figure(fig, staging / "contact_sheet.png")
+        write_json(staging / "meta.json", meta)
+    for stale in sorted(set(previous) - set(names)):  # an earlier run with more patterns
+        (out / stale).unlink(missing_ok=True)
     return meta
 
 
