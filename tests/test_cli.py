@@ -346,7 +346,7 @@ def test_ctrl_c_in_search_points_to_the_partial_trace(tmp_path, scene_file, caps
 
     monkeypatch.setattr("train.search.run_search", interrupted)
     command = ["search", "--family", "tri_complementary", "--M", "2", "--maxeval", "20", "--scenes", str(scene_file), "--out", str(out)]
-    for flushed, hint in ((False, "no evaluation was saved yet"), (True, f"are in {tmp_path / 's.trace.partial.csv'}")):
+    for flushed, hint in ((False, "no evaluation was made yet"), (True, f"are in {tmp_path / 's.trace.partial.csv'}")):
         assert run(command) == 130
         err = capsys.readouterr().err.strip()
         assert err.startswith("displex: interrupted; ") and err.endswith(hint) and "\n" not in err, err

@@ -275,8 +275,9 @@ def test_a_refused_search_leaves_an_earlier_partial_trace(scene_dir, tmp_path):
 
 
 def test_interrupted_search_leaves_a_partial_trace_and_the_finished_run_untouched(scene_dir, tmp_path, monkeypatch):
-    """Ctrl-C after 13 evaluations: the 10 flushed ones are in .trace.partial.csv, and the files of
-    the earlier finished run with the same --out (trace, chart, patterns, config) are unchanged."""
+    """Ctrl-C after 13 evaluations: all 13 are in .trace.partial.csv, and the files of the earlier
+    finished run with the same --out (trace, chart, patterns, config) are unchanged; so they are
+    after a Ctrl-C while the outputs of a search that has finished its evaluations are written."""
     out = tmp_path / "best.npz"
     partial = tmp_path / "best.trace.partial.csv"
     assert partial_trace_path(out) == partial and ("partial trace", partial) in output_files(out)
@@ -301,10 +302,20 @@ def test_interrupted_search_leaves_a_partial_trace_and_the_finished_run_untouche
         run_search(dataclasses.replace(config, maxeval=30), out, progress=False)
     assert len(evaluated) == 13
     rows = list(csv.DictReader(partial.read_text().splitlines()))
-    assert [int(row["index"]) for row in rows] == list(range(10))
+    assert [int(row["index"]) for row in rows] == list(range(13))
     names = list(rows[0])[1:-2]
-    assert np.array_equal([[float(row[name]) for name in names] for row in rows], evaluated[:10])
+    assert np.array_equal([[float(row[name]) for name in names] for row in rows], evaluated)
     assert {name: (tmp_path / name).read_bytes() for name in finished} == finished
+    monkeypatch.setattr(PatternObjective, "__call__", evaluate)
+
+    def chart_interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("train.figures.save_figure", chart_interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_search(dataclasses.replace(config, maxeval=3, seed=1), out, progress=False)
+    assert {name: (tmp_path / name).read_bytes() for name in finished} == finished
+    assert len(partial.read_text().splitlines()) == 1 + 3 and not list(tmp_path.glob(".staging*"))
 
 
 def test_a_second_search_on_the_same_output_is_refused(scene_dir, tmp_path):

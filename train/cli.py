@@ -298,8 +298,8 @@ def _search_interrupted(args) -> str:
 
     partial = partial_trace_path(args.out)
     if not partial.exists():
-        return "no evaluation was saved yet"
-    return f"the evaluations saved so far (every 10th flushes them) are in {partial}"
+        return "no evaluation was made yet"
+    return f"an earlier search's results in --out are unchanged; the evaluations made so far are in {partial}"
 
 
 def _search(args) -> None:

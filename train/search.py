@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import exclusive_output, write_json, write_text
+from capture_sim.atomic import exclusive_output, staged_files, write_json, write_text
 from capture_sim.errors import DisplexWarning, InputError, check_seed
 from capture_sim.rig import DEFAULT_RIG, load_rig
 from patterns.families import PRESETS, default_vector, get_family
@@ -495,6 +495,34 @@ def _remove_file(path: Path) -> None:
         path.unlink()
 
 
+def _search_meta(config: SearchConfig, rig, names: list[str], start, found, scenes: list) -> dict:
+    """The pattern file's meta of a finished search (``found``: ``minimise``'s result; ``scenes``:
+    the prepared search scenes)."""
+    return {
+        "family": config.family,
+        "algorithm": config.algorithm,
+        "made_by": "displex search",
+        "rig": rig.name,
+        "num_patterns": config.num_patterns,
+        "parameter_names": names,
+        "parameters": {name: float(value) for name, value in zip(names, found.best_x)},
+        "start_parameters": {name: float(value) for name, value in zip(names, start)},
+        "start_mae": found.start_value,
+        "best_mae": found.best_value,
+        "evaluations": len(found.history),
+        "stop_reason": found.stop_reason,
+        "seconds": found.seconds,
+        "sharpness": config.sharpness,
+        "objective": (
+            f"mean over {len(scenes)} training scenes of the mean angular error (deg) of solve_ps over "
+            f"{'all' if not config.pixels_per_scene else f'at most {config.pixels_per_scene} fixed'} pixels per scene, "
+            f"noise scale {config.noise_scale:g}, fixed noise seed"
+        ),
+        "scenes": [pixels.name for pixels in scenes],
+        "config": config_to_dict(config),
+    }
+
+
 def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, progress: bool = True) -> dict:
     """Search a family's parameters with NLopt and write the best patterns.
 
@@ -504,8 +532,8 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
     TensorBoard scalars under ``logdir`` if given. While it runs, every 10 evaluations go to
     ``<out stem>.trace.partial.csv`` (a stale one from an earlier run is removed when the
     evaluations start, after every input was checked); a finished search removes it, and a search
-    interrupted during its evaluations (Ctrl-C, an error) leaves it and writes none of the other
-    files.
+    interrupted (Ctrl-C, an error) leaves it, holding every evaluation made, and writes none of
+    the other files (they are staged and replace an earlier search's together).
 
     Args:
         config: search settings.
@@ -560,42 +588,24 @@ def _search(config: SearchConfig, out: Path, logdir: Path | None, progress: bool
     try:
         found = minimise(objective, start, low, high, config.algorithm, config.maxeval, config.maxtime, config.xtol_rel,
                          config.ftol_abs, config.initial_step, config.seed, on_evaluation)
+        meta = _search_meta(config, rig, names, start, found, scenes)
+        chart = trace_chart_path(out)
+        caption = (f"{meta['objective']}; {len(found.history)} evaluations, stop: {found.stop_reason}; "
+                   f"start {found.start_value:.2f} deg, best {found.best_value:.2f} deg")
+        # The four outputs replace an earlier search's together (the pattern file last).
+        with staged_files(out.parent, last=(out.name,)) as staging:
+            save_patterns(staging / out.name, objective.patterns(found.best_x).numpy(), meta)
+            write_json(staging / config_record_path(out).name, meta["config"])
+            write_text(staging / trace.name, trace_csv(names, found.history))
+            save_figure(trace_figure(found.history, f"NLopt {config.algorithm}: {config.family}, M = {config.num_patterns}", caption),
+                        staging / chart.name)
+    except BaseException:
+        if seen:  # stopped (Ctrl-C, an error): every evaluation made so far, not only the last flush
+            write_text(partial, trace_csv(names, seen))
+        raise
     finally:
         bar.close()
         if writer is not None:
             writer.close()
-    best_patterns = objective.patterns(found.best_x).numpy()
-    resolved = config_to_dict(config)
-    meta = {
-        "family": config.family,
-        "algorithm": config.algorithm,
-        "made_by": "displex search",
-        "rig": rig.name,
-        "num_patterns": config.num_patterns,
-        "parameter_names": names,
-        "parameters": {name: float(value) for name, value in zip(names, found.best_x)},
-        "start_parameters": {name: float(value) for name, value in zip(names, start)},
-        "start_mae": found.start_value,
-        "best_mae": found.best_value,
-        "evaluations": len(found.history),
-        "stop_reason": found.stop_reason,
-        "seconds": found.seconds,
-        "sharpness": config.sharpness,
-        "objective": (
-            f"mean over {len(scenes)} training scenes of the mean angular error (deg) of solve_ps over "
-            f"{'all' if not config.pixels_per_scene else f'at most {config.pixels_per_scene} fixed'} pixels per scene, "
-            f"noise scale {config.noise_scale:g}, fixed noise seed"
-        ),
-        "scenes": [pixels.name for pixels in scenes],
-        "config": resolved,
-    }
-    save_patterns(out, best_patterns, meta)
-    write_json(config_record_path(out), resolved)
-    write_text(trace, trace_csv(names, found.history))
-    chart = trace_chart_path(out)
-    caption = (f"{meta['objective']}; {len(found.history)} evaluations, stop: {found.stop_reason}; "
-               f"start {found.start_value:.2f} deg, best {found.best_value:.2f} deg")
-    save_figure(trace_figure(found.history, f"NLopt {config.algorithm}: {config.family}, M = {config.num_patterns}", caption), chart)
-    # Last, so that a failure while writing the outputs above still leaves the flushed evaluations.
     _remove_file(partial)
     return {**meta, "pattern_file": str(out), "trace_csv": str(trace), "trace_png": str(chart)}
