@@ -42,7 +42,7 @@ def read_arrays(path: str | Path, what: str, keys=None) -> np.ndarray | dict[str
         # archive (BadZipFile), bad compressed data (zlib.error), a garbled array header
         # (SyntaxError, tokenize.TokenError), a header claiming a huge shape (MemoryError).
         raise InputError(f"{path}: not a readable {what} file ({type(err).__name__}: {err})") from None
-    raise InputError(f"{path}: not a {what} file (neither .npz nor .npy)")
+    raise InputError(f"{path}: not a {what} file (its contents are neither a .npz archive nor a .npy array)")
 
 
 def read_meta(arrays: dict, path: str | Path, what: str) -> dict:

@@ -334,6 +334,10 @@ def test_ctrl_c_gives_one_line_with_the_resume_hint(tmp_path, scene_file, capsys
     assert run(command) == 130
     err = capsys.readouterr().err.strip()
     assert err.startswith("displex: interrupted; rerun the same command") and err.endswith("k.ckpt.pt") and "\n" not in err, err
+    # A Ctrl-C before the command starts (while the parser is built) is the same one line.
+    monkeypatch.setattr("train.cli.build_parser", interrupted)
+    assert run(command) == 130
+    assert capsys.readouterr().err.strip() == "displex: interrupted"
 
 
 def test_ctrl_c_in_search_points_to_the_partial_trace(tmp_path, scene_file, capsys, monkeypatch):

@@ -472,7 +472,11 @@ def run(argv: list[str] | None = None) -> int:
     when interrupted by Ctrl-C (one line; commands that resume say how)."""
     with warnings.catch_warnings():  # restores the warning hook afterwards (run is also called in-process)
         warnings.showwarning = _show_warning
-        return _run(argv)
+        try:
+            return _run(argv)
+        except KeyboardInterrupt:  # before a command started (building the parser, importing torch)
+            print("\ndisplex: interrupted", file=sys.stderr)
+            return 130
 
 
 def _run(argv: list[str] | None) -> int:

@@ -50,6 +50,11 @@ DEFAULT_ANGLE_CAP_DEG = 40.0
 SOLVERS = ("full", "unrolled")
 
 
+MAX_LEARNING_RATE = 1e30
+"""Largest ``learning_rate`` accepted: far beyond any useful one (1 is the default), and below the
+values (about 1e38) at which Adam's float32 step overflows."""
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Settings of one pattern-learning run (TOML files in configs/train/)."""
@@ -124,8 +129,9 @@ class TrainConfig:
             raise InputError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
         if self.loss == "capped_angular" and not self.angle_cap_deg > 0:
             raise InputError(f"angle_cap_deg must be > 0 (inf for no cap), got {self.angle_cap_deg!r}")
-        if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
-            raise InputError(f"learning_rate must be a finite number > 0, got {self.learning_rate!r}")
+        # Adam's step (learning rate over its bias correction) must stay a float32 number.
+        if not 0 < self.learning_rate <= MAX_LEARNING_RATE:
+            raise InputError(f"learning_rate must be a number in (0, {MAX_LEARNING_RATE:g}], got {self.learning_rate!r}")
         if not 0 < self.final_lr_fraction <= 1:
             raise InputError(f"final_lr_fraction must lie in (0, 1], got {self.final_lr_fraction!r}")
         for name in ("noise_scale", "rerender_weight"):
