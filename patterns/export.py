@@ -85,12 +85,16 @@ def render_frame(
     return np.repeat(np.repeat(quantised, row_sizes, axis=0), col_sizes, axis=1)
 
 
-def _written_by_export(manifest_path: Path) -> bool:
-    """Whether ``manifest_path`` is a manifest that ``export_frames`` wrote (its format tag)."""
+def _exported_files(manifest_path: Path) -> set[str] | None:
+    """The frame files listed by ``manifest_path`` if ``export_frames`` wrote it (its format tag),
+    else None (missing, unreadable, not JSON, another format)."""
     try:
-        return json.loads(manifest_path.read_text()).get("format") == FORMAT
-    except (OSError, ValueError, AttributeError):  # missing, unreadable, not JSON, not an object
-        return False
+        manifest = json.loads(manifest_path.read_text())
+        if manifest.get("format") != FORMAT:
+            return None
+        return {name for name in manifest.get("capture_order", []) if isinstance(name, str)}
+    except (OSError, ValueError, AttributeError, TypeError):
+        return None
 
 
 def replaced_by_export(path: str | Path, out_dir: str | Path) -> bool:
@@ -151,13 +155,20 @@ def export_frames(
     col_bounds = superpixel_boundaries(rig.cols, width)
     mirrored = columns_mirrored(rig)
     # Frames of an earlier export (more patterns, or OLAT frames) would be played too: they are
-    # removed, but only from a folder an export wrote (its manifest, or the marker of an export
-    # interrupted while replacing files); other files with such names are the user's.
+    # removed, but only from a folder an export wrote (its manifest, listing every frame there, or
+    # the marker of an export interrupted while replacing files); other files with such names are
+    # the user's.
     marker = out_dir / EXPORT_MARKER
     manifest_path = out_dir / MANIFEST_NAME
-    ours = marker.exists() or _written_by_export(manifest_path)
+    exported = _exported_files(manifest_path)
+    ours = marker.exists() or exported is not None
     if not ours and manifest_path.exists():
         raise InputError(f"{manifest_path} was not written by displex export: not an export folder; choose another folder")
+    if exported is not None and not marker.exists():
+        unlisted = sorted(path.name for pattern_glob in FRAME_GLOBS for path in out_dir.glob(pattern_glob) if path.name not in exported)
+        if unlisted:
+            raise InputError(f"{out_dir} holds frame files its {MANIFEST_NAME} does not list ({', '.join(unlisted[:3])}"
+                             f"{', ...' if len(unlisted) > 3 else ''}): they are not the export's; move them or choose another folder")
     if not ours and any(any(out_dir.glob(pattern_glob)) for pattern_glob in (*FRAME_GLOBS, CONTACT_SHEET_NAME)):
         raise InputError(f"{out_dir} holds frame files (pattern_*.png, olat_*.png, contact_sheet.png, ...) but no {MANIFEST_NAME}: "
                          "not an export folder; choose another folder or remove them")

@@ -255,6 +255,13 @@ def test_export_keeps_frame_files_it_did_not_write(tmp_path, small_rig):
     (interrupted / "pattern_007.png").write_bytes(b"stale")
     export_frames(_patterns(small_rig, 1), small_rig, interrupted)
     assert sorted(p.name for p in interrupted.iterdir()) == ["contact_sheet.png", "manifest.json", "pattern_000.png"]
+    # An export folder with frame files its manifest does not list: those are the user's.
+    for name in ("pattern_042.png", "olat_mine.png"):
+        (interrupted / name).write_bytes(b"the user's own image")
+        with pytest.raises(InputError, match=f"frame files its manifest.json does not list \\({name}\\)"):
+            export_frames(_patterns(small_rig, 2), small_rig, interrupted)
+        assert (interrupted / name).read_bytes() == b"the user's own image"
+        (interrupted / name).unlink()
     # A manifest.json of the user's own does not make a folder an export folder.
     theirs = tmp_path / "theirs"
     theirs.mkdir()
