@@ -100,6 +100,17 @@ def test_points_asked_again_cost_no_evaluation():
     found = minimise(quadratic, np.zeros(3), LOW, HIGH, "LN_SBPLX", maxeval=40)
     points = [x.tobytes() for x, _ in found.history]
     assert len(points) == len(set(points)) > 10  # with one remembered point, the start came twice
+    # Nor do they spend the budget: NLopt's own count includes them (SBPLX made 28 of 30), and
+    # -0.0 is the same point as 0.0 (BOBYQA asked for its start again with a zero's sign flipped).
+    for algorithm, maxeval in (("LN_SBPLX", 30), ("LN_BOBYQA", 2)):
+        found = minimise(bumpy, np.array([0.0, -0.0, 0.5]), -np.ones(3), np.ones(3), algorithm, maxeval, xtol_rel=0, ftol_abs=0)
+        points = {x.tobytes() for x, _ in found.history}
+        assert len(found.history) == len(points) == maxeval and found.stop_reason == "maxeval reached", (algorithm, found.stop_reason)
+
+
+def bumpy(x, need_gradient):
+    """A quadratic with ripples: local algorithms keep searching near its minimum."""
+    return float(((x - 0.3) ** 2).sum() + 0.01 * np.sin(10 * x).sum()), 2 * (x - 0.3) + 0.1 * np.cos(10 * x)
 
 
 def test_maxtime_stops_the_search():

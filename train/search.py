@@ -163,7 +163,12 @@ class Minimum:
 
 CACHED_POINTS = 64
 """Evaluations ``_Tracker`` remembers: algorithms that ask for a point again (LN_SBPLX returns to
-its start) are answered without spending an evaluation of the budget."""
+its start) are answered without spending an evaluation of the budget (``minimise`` lets NLopt
+make ``NLOPT_REQUESTS_PER_EVALUATION`` times as many requests as the budget has evaluations)."""
+
+NLOPT_REQUESTS_PER_EVALUATION = 4
+"""NLopt's own request limit over ``maxeval``: it counts repeated points, which the cache answers
+without spending the budget; the budget itself is enforced by ``_Tracker``."""
 
 
 class _Tracker:
@@ -199,7 +204,9 @@ class _Tracker:
 
     def _call(self, x: np.ndarray, grad: np.ndarray) -> float:
         # Some algorithms step a rounding error outside the bounds; the generators reject that.
-        x = np.clip(np.asarray(x, dtype=np.float64), self.low, self.high)
+        # + 0.0 turns -0.0 into 0.0: the same point must have one cache key (LN_BOBYQA asks for
+        # the start again with a zero's sign flipped).
+        x = np.clip(np.asarray(x, dtype=np.float64), self.low, self.high) + 0.0
         key = x.tobytes()
         need_gradient = grad.size > 0
         cached = self._cache.get(key)
@@ -324,7 +331,7 @@ def minimise(
         optimiser.set_lower_bounds(low)
         optimiser.set_upper_bounds(high)
         optimiser.set_min_objective(tracker)
-        optimiser.set_maxeval(int(maxeval))
+        optimiser.set_maxeval(int(min(MAX_EVALUATIONS, NLOPT_REQUESTS_PER_EVALUATION * maxeval)))
         if maxtime:
             optimiser.set_maxtime(max(1e-3, maxtime - (time.perf_counter() - begun)))
         optimiser.set_xtol_rel(xtol_rel)
@@ -346,6 +353,8 @@ def minimise(
             stop_reason = "maxeval reached"
         elif tracker.out_of_time:
             stop_reason = "maxtime reached"
+        elif stop_reason == "maxeval reached":  # NLopt's request limit, repeated points included
+            stop_reason = f"stopped: NLopt's own request limit ({NLOPT_REQUESTS_PER_EVALUATION} x maxeval, repeated points included)"
     return Minimum(
         best_x=tracker.best_x,
         best_value=tracker.best_value,
