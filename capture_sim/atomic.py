@@ -101,13 +101,16 @@ def atomic_path(path: str | Path, suffix: str = "", sync: bool = False):
 
 
 @contextmanager
-def staged_files(folder: str | Path, last: tuple[str, ...] = ()):
+def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list | None = None):
     """Yield a temporary folder inside ``folder`` (created if needed) for the files of one command.
 
     When the block ends normally, every file written into it (in subfolders too) replaces its
     namesake at the same place in ``folder``, one rename each. The top-level names in ``last``
     (e.g. a manifest or an index whose presence says the folder is complete) are removed first and
-    moved in after all the others, so that none ever stands over a mixture of two runs. When the
+    moved in after all the others, so that none ever stands over a mixture of two runs. The paths
+    in ``obsolete`` (an earlier run's files this one does not replace; the block may still add to
+    the list) are removed after the others move in and before the ``last`` ones: until then the
+    earlier run is whole, and once ``last`` stands the folder holds this run alone. When the
     block raises, the files are discarded, and so are the folders it created (``folder`` and any
     missing parents) if they are empty. A command that writes many files during long work thus
     leaves all of them or none: never new files of some scenes beside an earlier run's results.
@@ -122,13 +125,19 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = ()):
         raise InputError(f"cannot write into {folder}: {err.strerror or err}") from None
     try:
         yield staging
-        files = sorted((path.relative_to(staging) for path in staging.rglob("*") if not path.is_dir()),
-                       key=lambda relative: (relative.parts[0] in last, relative.as_posix()))
+        files = sorted(path.relative_to(staging) for path in staging.rglob("*") if not path.is_dir())
         for name in last:
             (folder / name).unlink(missing_ok=True)
-        for relative in files:
-            (folder / relative).parent.mkdir(parents=True, exist_ok=True)
-            os.replace(staging / relative, folder / relative)
+
+        def move(relatives) -> None:
+            for relative in relatives:
+                (folder / relative).parent.mkdir(parents=True, exist_ok=True)
+                os.replace(staging / relative, folder / relative)
+
+        move(relative for relative in files if relative.parts[0] not in last)
+        for path in obsolete or ():
+            Path(path).unlink(missing_ok=True)
+        move(relative for relative in files if relative.parts[0] in last)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         for path in created:

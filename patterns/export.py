@@ -92,7 +92,8 @@ def _exported_files(manifest_path: Path) -> set[str] | None:
         manifest = json.loads(manifest_path.read_text())
         if manifest.get("format") != FORMAT:
             return None
-        return {name for name in manifest.get("capture_order", []) if isinstance(name, str)}
+        # The frames as import_frames reads them (capture_order, optional there, restates them).
+        return {frame.get("file") for frame in manifest.get("frames", []) if isinstance(frame, dict)}
     except (OSError, ValueError, AttributeError, TypeError):
         return None
 

@@ -1,5 +1,7 @@
 """The command line end to end on tiny scenes: outputs, exit codes, one-line errors."""
 import json
+import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -258,6 +260,21 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
     assert sorted(path.name for path in (tmp_path / "sim").iterdir()) == ["contact_sheet.png"]
 
 
+def interrupted_move(folder: Path, moves: int = 1):
+    """An ``os.replace`` that raises KeyboardInterrupt at the move into ``folder`` after ``moves``
+    of them (the staged files moving into place), renaming as usual otherwise."""
+    done, original = [], os.replace
+
+    def replace(source, target):
+        if Path(target).parent == folder:
+            if len(done) == moves:
+                raise KeyboardInterrupt
+            done.append(target)
+        original(source, target)
+
+    return replace
+
+
 def test_evaluate_out_is_written_all_or_nothing(tmp_path, scene_file, capsys, monkeypatch):
     """A failure after the first scene (here the second scene's) leaves --out as the last finished
     run left it: no new maps of some scenes beside an older results.json, no staging folder."""
@@ -288,7 +305,17 @@ def test_evaluate_out_is_written_all_or_nothing(tmp_path, scene_file, capsys, mo
     # evaluate stays beside its results.json.
     monkeypatch.setattr(evaluate_command, "evaluate_scene", original)
     assert run(["evaluate", "--patterns", "olat", "--scenes", str(other), "--out", str(out)]) == 0
-    assert sorted(path.name for path in out.iterdir()) == sorted(["results.json", "summary.png"] + [f"other{ending}" for ending in evaluate_command.SCENE_OUTPUT_ENDINGS])
+    only_other = sorted(["results.json", "summary.png"] + [f"other{ending}" for ending in evaluate_command.SCENE_OUTPUT_ENDINGS])
+    assert sorted(path.name for path in out.iterdir()) == only_other
+    # So does one after a run interrupted while its files moved in (results.json, removed first,
+    # then lists nothing).
+    assert run(["evaluate", "--patterns", "olat", "--scenes", str(scene_file), str(other), "--out", str(out)]) == 0
+    with monkeypatch.context() as patch:
+        patch.setattr("capture_sim.atomic.os.replace", interrupted_move(out))
+        assert run(["evaluate", "--patterns", "olat", "--scenes", str(other), "--out", str(out)]) == 130
+    assert not (out / "results.json").exists()
+    assert run(["evaluate", "--patterns", "olat", "--scenes", str(other), "--out", str(out)]) == 0
+    assert sorted(path.name for path in out.iterdir()) == only_other
 
 
 def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeypatch):
@@ -341,6 +368,8 @@ def test_ctrl_c_gives_one_line_with_the_resume_hint(tmp_path, scene_file, capsys
 
 
 def test_ctrl_c_in_search_points_to_the_partial_trace(tmp_path, scene_file, capsys, monkeypatch):
+    from train.search import partial_trace_path
+
     out = tmp_path / "s.npz"
 
     def interrupted(config, path, **kwargs):
@@ -354,6 +383,11 @@ def test_ctrl_c_in_search_points_to_the_partial_trace(tmp_path, scene_file, caps
         assert run(command) == 130
         err = capsys.readouterr().err.strip()
         assert err.startswith("displex: interrupted; ") and err.endswith(hint) and "\n" not in err, err
+    # A newline in the output's name is escaped: the message stays one line.
+    odd = tmp_path / "s\nt.npz"
+    partial_trace_path(odd).write_text("index,mae\n")
+    assert run(command[:-1] + [str(odd)]) == 130
+    assert capsys.readouterr().err.strip().endswith("s\\nt.trace.partial.csv")
 
 
 def test_patterns_make_and_export_round_trip(tmp_path):
@@ -487,6 +521,15 @@ def test_review_fixes_rig_values_stale_captures_and_logdir(tmp_path, scene_file,
         patch.setattr("train.simulate_command.save_figure", interrupted)
         assert run(["simulate", "--scene", str(scene_file), "--patterns", str(many), "--out", str(out), "--noise", "off"]) == 130
     assert {path.name: path.read_bytes() for path in out.iterdir()} == finished
+    # Interrupted while its files move in (meta.json, removed first, then lists nothing), a run
+    # with fewer patterns leaves extra captures; the next finished run still removes them.
+    assert run(["simulate", "--scene", str(scene_file), "--patterns", str(many), "--out", str(out), "--noise", "off"]) == 0
+    with monkeypatch.context() as patch:
+        patch.setattr("capture_sim.atomic.os.replace", interrupted_move(out))
+        assert run(["simulate", "--scene", str(scene_file), "--patterns", str(few), "--out", str(out), "--noise", "off"]) == 130
+    assert not (out / "meta.json").exists() and len(list(out.glob("capture_*.png"))) > 1
+    assert run(["simulate", "--scene", str(scene_file), "--patterns", str(few), "--out", str(out), "--noise", "off"]) == 0
+    assert sorted(p.name for p in out.glob("capture_*.png")) == ["capture_000.png"]
     blocker = tmp_path / "a_file"
     blocker.write_text("")
     capsys.readouterr()

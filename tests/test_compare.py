@@ -387,19 +387,24 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     with pytest.raises(InputError, match="another config"):
         run_compare(changed, tmp_path, progress=False)
     assert {path: path.read_bytes() for path in (tmp_path / "patterns").glob("*.npz")} == before
-    # A rerun interrupted part-way (here: another heuristic preset, its evaluation stopped) leaves
-    # the heuristic pattern files, results and report of the last finished run, which match.
-    outputs = sorted((tmp_path / "patterns").glob("*.npz")) + [tmp_path / name for name in ("results.json", "report.md", "config.json")]
+    # A rerun interrupted part-way (another heuristic preset and no specular-free check, stopped
+    # in its evaluation or while its outputs are written) leaves the heuristic pattern files,
+    # results, report and charts of the last finished run, which match.
+    run_compare(config, tmp_path, progress=False)
+    outputs = sorted((tmp_path / "patterns").glob("*.npz")) + sorted(tmp_path.glob("*.png")) + [tmp_path / name for name in ("results.json", "report.md", "config.json")]
+    assert tmp_path / CHARTS["specular_free"] in outputs
     finished = {path: path.read_bytes() for path in outputs}
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr("train.compare.evaluate_methods", interrupted)
-    with pytest.raises(KeyboardInterrupt):
-        run_compare(dataclasses.replace(config, heuristic_preset="ddps"), tmp_path, progress=False)
-    assert {path: path.read_bytes() for path in outputs} == finished
-    assert not list(tmp_path.glob(".staging*"))
+    for stage in ("evaluate_methods", "write_json"):
+        with monkeypatch.context() as patch:
+            patch.setattr(f"train.compare.{stage}", interrupted)
+            with pytest.raises(KeyboardInterrupt):
+                run_compare(dataclasses.replace(config, heuristic_preset="ddps", specular_free_check=False), tmp_path, progress=False)
+        assert {path: path.read_bytes() for path in outputs} == finished, stage
+        assert not list(tmp_path.glob(".staging*"))
     # An external file in the patterns folder would be rewritten by the run that reads it.
     inside = tiny_config(scenes, external=[{"name": "mine", "path": str(tmp_path / "patterns" / "heuristic_tri_complementary_M2.npz")}])
     with pytest.raises(InputError, match=r"\[\[external\]\] mine: .* lies in .*patterns, whose files compare rewrites"):

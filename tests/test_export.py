@@ -262,6 +262,11 @@ def test_export_keeps_frame_files_it_did_not_write(tmp_path, small_rig):
             export_frames(_patterns(small_rig, 2), small_rig, interrupted)
         assert (interrupted / name).read_bytes() == b"the user's own image"
         (interrupted / name).unlink()
+    # Its frames are those import_frames reads (``frames``; ``capture_order`` is optional there).
+    manifest = json.loads((interrupted / "manifest.json").read_text())
+    del manifest["capture_order"]
+    (interrupted / "manifest.json").write_text(json.dumps(manifest))
+    export_frames(_patterns(small_rig, 2), small_rig, interrupted)
     # A manifest.json of the user's own does not make a folder an export folder.
     theirs = tmp_path / "theirs"
     theirs.mkdir()

@@ -299,7 +299,7 @@ def _search_interrupted(args) -> str:
     partial = partial_trace_path(args.out)
     if not partial.exists():
         return "no evaluation was made yet"
-    return f"an earlier search's results in --out are unchanged; the evaluations made so far are in {partial}"
+    return f"the evaluations made so far are in {partial}"
 
 
 def _search(args) -> None:
@@ -504,7 +504,7 @@ def _handle(args) -> int:
     except KeyboardInterrupt:
         hint = getattr(args, "interrupted", None)
         hint = hint(args) if callable(hint) else hint
-        print(f"\ndisplex: interrupted{'; ' + hint if hint else ''}", file=sys.stderr)
+        print(f"\ndisplex: interrupted{'; ' + one_line(hint) if hint else ''}", file=sys.stderr)
         return 130  # the shell's status for a SIGINT
     except InputError as err:
         print(f"displex: error: {one_line(err)}", file=sys.stderr)

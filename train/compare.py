@@ -871,7 +871,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
         ``white_exposures`` (e_white per test scene, ``white_exposures``), scene names, ``methods`` (each with ``evaluations`` per noise level), ``skipped``,
         ``summary`` (learned vs best heuristic, seed spread) and ``timings``.
     """
-    from train.report import summary_tables, write_report
+    from train.report import CHARTS, summary_tables, write_report
 
     out_dir = Path(out_dir)
     began = time.perf_counter()
@@ -927,12 +927,14 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     # The heuristic pattern files, report, charts, results and config are moved into place
     # together: a run refused or interrupted part-way leaves them all describing the last
     # finished run (learned and searched files are kept per settings, see ``_reusable``).
-    with staged_files(out_dir, last=("results.json", "config.json")) as staging:
+    obsolete: list = []  # an earlier run's charts that this report does not show
+    with staged_files(out_dir, last=("results.json", "config.json"), obsolete=obsolete) as staging:
         for method in methods:
             if method.kind == "heuristic":
                 save_patterns(staging / "patterns" / Path(method.pattern_file).name, method.patterns,
                               {"family": method.series, "preset": config.heuristic_preset, "made_by": "displex compare", "rig": rig.name})
         write_report(results, out_dir, {method.id: method.patterns for method in methods if not isinstance(method.patterns, str)}, staging)
+        obsolete += [out_dir / name for name in CHARTS.values() if not (staging / name).exists()]
         write_json(staging / "results.json", results)
         write_json(staging / "config.json", resolved)
     return results

@@ -67,28 +67,36 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
     inputs = [("scene file", file) for file in files] + [("pattern file", None if config.patterns == "olat" else config.patterns),
                                                           ("rig file", rig_file(config.rig))]
     refuse_overwriting([("--json", json_path), *_out_files(config.out, files)], inputs)
-    previous = [] if config.out is None else _previous_scene_outputs(Path(config.out))
     with contextlib.ExitStack() as stack:
         # Files for --out are staged and land together at the end: a failure part-way (a bad
-        # later scene, an unwritable --json) leaves no new maps beside an earlier run's results.
-        staging = None if config.out is None else stack.enter_context(staged_files(config.out, last=("results.json",)))
+        # later scene, an unwritable --json) leaves no new maps beside an earlier run's results;
+        # the maps of scenes an earlier run had and this one has not go before results.json lands.
+        staging, obsolete = None, []
+        if config.out is not None:
+            obsolete = sorted(set(_previous_scene_outputs(Path(config.out))) - {path for _, path in _out_files(config.out, files)})
+            staging = stack.enter_context(staged_files(config.out, last=("results.json",), obsolete=obsolete))
         document = _evaluate_scenes(config, scenes, files, rig, patterns, settings, staging, progress)
         if json_path is not None:
             write_json(json_path, document)
-    for stale in sorted(set(previous) - {path for _, path in _out_files(config.out, files)}):  # maps of scenes not in this run
-        stale.unlink(missing_ok=True)
     return document
 
 
 def _previous_scene_outputs(out: Path) -> list[Path]:
-    """The per-scene files of the scenes an earlier ``evaluate --out`` into ``out`` listed in its
-    results.json (only names it writes itself, so a hand-edited file cannot delete others)."""
+    """The per-scene files of an earlier ``evaluate --out`` into ``out``: those of the scenes its
+    results.json lists (only names evaluate writes itself, so a hand-edited file cannot delete
+    others), and those of every scene with a complete set of them there (a run interrupted while
+    its files moved in removes results.json first)."""
     try:
         files = json.loads((out / "results.json").read_text()).get("scene_files", [])
+        stems = {Path(file).stem for file in files if isinstance(file, str) and Path(file).stem}
     except (OSError, ValueError, AttributeError):
-        return []
-    return [out / f"{Path(file).stem}{ending}" for file in files if isinstance(file, str) and Path(file).stem
-            for ending in SCENE_OUTPUT_ENDINGS]
+        stems = set()
+    first, *others = SCENE_OUTPUT_ENDINGS
+    for path in out.glob(f"*{first}"):
+        stem = path.name[: -len(first)]
+        if stem and all((out / f"{stem}{ending}").is_file() for ending in others):
+            stems.add(stem)
+    return [out / f"{stem}{ending}" for stem in sorted(stems) for ending in SCENE_OUTPUT_ENDINGS]
 
 
 def _out_files(out: Path | None, files: list[Path]) -> list[tuple[str, Path]]:

@@ -574,11 +574,12 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict, staging: Path
 
     Args:
         results: ``run_compare`` results (with ``summary``).
-        out_dir: output folder; the report's links are relative to it, and its charts that this
-            report does not show (an earlier run's) are removed from it.
+        out_dir: output folder; the report's links are relative to it.
         pattern_sets: method id -> (M, R, C, 3) patterns, for the pattern figure.
         staging: folder the files are written into (``capture_sim.atomic.staged_files``, which
-            moves them into ``out_dir``); ``out_dir`` itself by default.
+            moves them into ``out_dir``; the caller then removes the charts of ``out_dir`` that
+            this report does not show). Without it the files go straight into ``out_dir``, whose
+            earlier charts that this report does not show are removed.
 
     Returns:
         Path of report.md as written (inside ``staging`` when given).
@@ -608,8 +609,9 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict, staging: Path
     if entries:
         save_figure(chart_patterns(entries, "Each row: one pattern set, patterns left to right; superpixel grid as on the panel."), into / CHARTS["patterns"])
         written.add("patterns")
-    for name in set(CHARTS) - written:  # an earlier run's chart would contradict this report
-        (out_dir / CHARTS[name]).unlink(missing_ok=True)
+    if staging is None:
+        for name in set(CHARTS) - written:  # an earlier run's chart would contradict this report
+            (out_dir / CHARTS[name]).unlink(missing_ok=True)
 
     lines = ["# Pattern comparison", "", caption, ""]
     counts = results["pattern_counts"]

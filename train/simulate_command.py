@@ -108,7 +108,7 @@ def run_simulate(config: SimulateConfig) -> dict:
             generator=torch.Generator().manual_seed(config.seed),
         )
     images = transport.to_image(capture.captures).numpy().astype(np.float32)
-    previous = _previous_captures(out)
+    obsolete = [out / name for name in _previous_captures(out) if name not in names]  # an earlier run with more patterns
     meta = {
         "scene": str(config.scene),
         "patterns": str(config.patterns),
@@ -129,7 +129,7 @@ def run_simulate(config: SimulateConfig) -> dict:
     shown = images[:SHEET_CAPTURES]
     # Written into a staging folder and moved into place at the end (meta.json last): an
     # interrupted run leaves an earlier run's files whole.
-    with staged_files(out, last=("meta.json",)) as staging:
+    with staged_files(out, last=("meta.json",), obsolete=obsolete) as staging:
         save_npy(staging / "captures.npy", images)
         for name, image in zip(names, images):
             write_png(staging / name, np.round(image * 65535).astype(np.uint16))
@@ -142,16 +142,16 @@ def run_simulate(config: SimulateConfig) -> dict:
         )
         save_figure(fig, staging / "contact_sheet.png")
         write_json(staging / "meta.json", meta)
-    for stale in sorted(set(previous) - set(names)):  # an earlier run with more patterns
-        (out / stale).unlink(missing_ok=True)
     return meta
 
 
 def _previous_captures(out: Path) -> list[str]:
-    """Capture PNGs that an earlier ``simulate`` into ``out`` listed in its meta.json (only names
-    it writes itself, so a hand-edited meta cannot delete other files)."""
+    """Capture PNGs of an earlier ``simulate`` into ``out``: those its meta.json lists, or, when
+    it has none (a run interrupted while its files moved in removes it first), every
+    ``capture_NNN.png`` there, which only simulate writes into its output folder."""
     try:
         files = json.loads((out / "meta.json").read_text()).get("files", [])
     except (OSError, ValueError, AttributeError):
-        return []
+        files = [path.name for path in out.glob("capture_*.png")]
+    # Only names simulate writes itself: a hand-edited meta cannot delete other files.
     return [name for name in files if isinstance(name, str) and re.fullmatch(r"capture_\d{3,}\.png", name)]
