@@ -71,7 +71,7 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
         # Files for --out are staged and land together at the end: a failure part-way (a bad
         # later scene, an unwritable --json) leaves no new maps beside an earlier run's results;
         # the maps of scenes an earlier run had and this one has not go before results.json lands.
-        staging, obsolete = None, []
+        staging = None
         if config.out is not None:
             obsolete = sorted(set(_previous_scene_outputs(Path(config.out))) - {path for _, path in _out_files(config.out, files)})
             staging = stack.enter_context(staged_files(config.out, last=("results.json",), obsolete=obsolete))
