@@ -28,6 +28,7 @@ def refuse_overwriting(outputs, inputs) -> None:
     for what, path in inputs:
         if path is not None and Path(path).is_file():
             seen.setdefault(Path(path).resolve(), what)
+    probed: set = set()
     for what, path in outputs:
         if path is None:
             continue
@@ -36,6 +37,23 @@ def refuse_overwriting(outputs, inputs) -> None:
         if resolved in seen:
             raise InputError(f"{what} {path} is also the {seen[resolved]}: writing it would destroy that file")
         seen[resolved] = what
+        _check_writable(Path(path), probed)
+
+
+def _check_writable(path: Path, probed: set) -> None:
+    """Raise ``InputError`` unless a file can be created in the nearest existing folder of
+    ``path`` (a read-only or pseudo file system such as /proc would otherwise fail only when the
+    output is written, after the work). ``probed`` collects the folders already tried."""
+    folder = next((parent for parent in path.absolute().parents if parent.exists()), None)
+    if folder is None or folder in probed:
+        return
+    probed.add(folder)
+    try:
+        handle, name = tempfile.mkstemp(prefix=".displex-probe.", dir=folder)
+    except OSError as err:
+        raise InputError(f"cannot write {path}: {err.strerror or err}") from None
+    os.close(handle)
+    os.unlink(name)
 
 
 def separate_json(json_path: str | Path | None, out: str | Path | None, name: str) -> Path | None:

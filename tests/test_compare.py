@@ -119,6 +119,16 @@ def test_config_errors(scenes):
         tiny_config(scenes, solver={"max_alternations": 0})
     with pytest.raises(InputError, match="eval_workers"):
         tiny_config(scenes, eval_workers=0)
+    with pytest.raises(InputError, match="pattern_counts must list at least one M"):
+        tiny_config(scenes, pattern_counts=[], rerender_counts=[])
+
+
+def test_an_output_folder_holding_the_source_package_is_refused(scenes, tmp_path):
+    (tmp_path / "patterns").mkdir()
+    (tmp_path / "patterns" / "__init__.py").write_text("")
+    with pytest.raises(InputError, match="holds a Python package patterns/"):
+        run_compare(tiny_config(scenes), tmp_path, progress=False)
+    assert sorted(path.name for path in (tmp_path / "patterns").iterdir()) == ["__init__.py"]
 
 
 def test_relative_paths_resolve_against_the_repository_root(scenes):
@@ -200,7 +210,8 @@ def test_rig_exposure_time():
 
 def test_unsupported_and_mismatched_methods_are_skipped_with_a_reason(scenes, tmp_path):
     config = tiny_config(scenes, pattern_counts=[1], heuristics=["tri_complementary", "olat"], learned_counts=[], include_olat_woodham=False)
-    methods, skipped, _ = collect_methods(config, load_rig(), tmp_path, progress=False)
+    with pytest.warns(DisplexWarning, match=r"external pattern file .* skipped: its M = \d+ is not in pattern_counts \[1\]"):
+        methods, skipped, _ = collect_methods(config, load_rig(), tmp_path, progress=False)
     assert [m.id for m in methods] == ["heuristic_olat_M1"]
     reasons = {s["method"]: s["reason"] for s in skipped}
     assert "supports M = 2..12" in reasons["tri_complementary"]

@@ -170,7 +170,9 @@ class CompareConfig:
     def __post_init__(self):
         counts = list(self.pattern_counts) + list(self.learned_counts or ()) + list(self.rerender_counts)
         counts += [run.num_patterns for run in self.search] + list(self.learned_at) + list(self.learned_seeds_at)
-        if not self.pattern_counts or any(isinstance(m, bool) or not isinstance(m, int) or m < 1 for m in counts):
+        if not self.pattern_counts:
+            raise InputError("pattern_counts must list at least one M")
+        if any(isinstance(m, bool) or not isinstance(m, int) or m < 1 for m in counts):
             raise InputError(f"pattern counts M must be positive integers, got {counts}")
         outside = sorted({m for m in counts if m not in self.pattern_counts})
         if outside:
@@ -541,6 +543,8 @@ def external_methods(config: CompareConfig, rig) -> tuple[list[Method], list[dic
             warnings.warn(f"external pattern file {item.path} skipped: {reason}", DisplexWarning, stacklevel=2)
         elif count not in config.pattern_counts:
             skipped.append({"method": item.name, "M": count, "reason": "M is not in pattern_counts"})
+            warnings.warn(f"external pattern file {item.path} skipped: its M = {count} is not in pattern_counts "
+                          f"{list(config.pattern_counts)}", DisplexWarning, stacklevel=2)
         else:
             methods.append(Method(f"external_{item.name}", "external", f"external:{item.name}", item.name, count, patterns, item.path))
     return methods, skipped
@@ -876,6 +880,9 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     out_dir = Path(out_dir)
     began = time.perf_counter()
     pattern_dir = out_dir / "patterns"
+    if (pattern_dir / "__init__.py").exists():  # e.g. out = "." in the repository root
+        raise InputError(f"compare output folder {out_dir} holds a Python package patterns/ (the source tree?), "
+                         "into which compare would write its pattern files; choose another folder")
     for item in config.external:
         if Path(item.path).resolve().is_relative_to(pattern_dir.resolve()):
             raise InputError(f"[[external]] {item.name}: {item.path} lies in {pattern_dir}, whose files compare rewrites; "

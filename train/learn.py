@@ -174,7 +174,7 @@ def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
     values, _ = load_patterns(path)
     check_patterns_match_rig(values, rows, cols)
     if values.shape[0] != config.num_patterns:
-        raise InputError(f"{path} holds {values.shape[0]} patterns but M = {config.num_patterns} (pass --M {values.shape[0]} to start from it)")
+        raise InputError(f"{path} holds {values.shape[0]} patterns but M = {config.num_patterns} (learn M = {values.shape[0]} patterns to start from it)")
     return torch.as_tensor(values)
 
 
