@@ -16,9 +16,10 @@ from capture_sim.errors import InputError
 
 
 def refuse_overwriting(outputs, inputs) -> None:
-    """Raise ``InputError`` if an output file would replace an input file or another output, or
-    if an output path holds something other than a regular file (``check_replaceable``): commands
-    call this before their work, so that such an output fails at once, not after it.
+    """Raise ``InputError`` if an output file would replace an input file or another output, if
+    an output path holds something other than a regular file (``check_replaceable``), or if no
+    file can be created in its folder: commands call this before their work, so that such an
+    output fails at once, not after it.
 
     Args:
         outputs: (what, path or None) pairs of files a command will write.
@@ -44,7 +45,7 @@ def _check_writable(path: Path, probed: set) -> None:
     """Raise ``InputError`` unless a file can be created in the nearest existing folder of
     ``path`` (a read-only or pseudo file system such as /proc would otherwise fail only when the
     output is written, after the work). ``probed`` collects the folders already tried."""
-    folder = next((parent for parent in path.absolute().parents if parent.exists()), None)
+    folder = _nearest_existing_folder(path)
     if folder is None or folder in probed:
         return
     probed.add(folder)
@@ -71,11 +72,14 @@ def check_replaceable(path: str | Path) -> None:
     path = Path(path)
     if path.exists() and not path.is_file():
         raise InputError(f"cannot write {path}: it exists and is not a regular file")
-    for folder in path.absolute().parents:  # the nearest existing folder must be one
-        if folder.exists():
-            if not folder.is_dir():
-                raise InputError(f"cannot write {path}: {folder} is a file, not a folder")
-            break
+    folder = _nearest_existing_folder(path)
+    if folder is not None and not folder.is_dir():
+        raise InputError(f"cannot write {path}: {folder} is a file, not a folder")
+
+
+def _nearest_existing_folder(path: Path) -> Path | None:
+    """The nearest existing parent of ``path``; it may be a file standing where a folder should be."""
+    return next((parent for parent in Path(path).absolute().parents if parent.exists()), None)
 
 
 def check_output_folder(path: str | Path, command: str) -> None:

@@ -176,16 +176,15 @@ def export_frames(
 
     # Everything is written into a staging folder first and moves in at the end (the manifest
     # last): an export that fails or is interrupted leaves the earlier export as it was.
-    with staged_files(out_dir, last=(MANIFEST_NAME,)) as staging:
+    # The earlier export's frames that this one does not replace go before its manifest lands.
+    obsolete: list = []
+    with staged_files(out_dir, last=(MANIFEST_NAME,), obsolete=obsolete) as staging:
         manifest = _write_export(values, rig, staging, bit_depth, include_olat, rig_name or rig.name, compression_level,
                                  (height, width), row_bounds, col_bounds, mirrored)
-        # The earlier export's manifest and frames go just before the new files move in; the
-        # marker says whose frames these are should that moment be interrupted.
+        obsolete += [path for pattern_glob in FRAME_GLOBS for path in out_dir.glob(pattern_glob) if not (staging / path.name).exists()]
+        # The earlier manifest goes first as the new files move in: the marker says whose frames
+        # these are should that moment be interrupted.
         write_bytes(marker, b"export in progress\n")
-        manifest_path.unlink(missing_ok=True)
-        for pattern_glob in FRAME_GLOBS:
-            for stale in out_dir.glob(pattern_glob):
-                stale.unlink()
     marker.unlink(missing_ok=True)
     return manifest
 

@@ -192,10 +192,13 @@ def light_spread(points: torch.Tensor, lights: torch.Tensor, falloff: Callable) 
     centroid = points.mean(0, keepdim=True)
 
     centre_dirs, centre_distance = light_geometry(centroid, lights)
-    centre_falloff = torch.as_tensor(falloff(centre_distance), dtype=torch.float64)
-    unusable = InputError("light_spread: the falloff is not positive and finite over the object")
-    if not bool(((centre_falloff > 0) & torch.isfinite(centre_falloff)).all()):
-        raise unusable
+
+    def usable(values: torch.Tensor) -> torch.Tensor:
+        if not bool(((values > 0) & torch.isfinite(values)).all()):
+            raise InputError("light_spread: the falloff is not positive and finite over the object")
+        return values
+
+    centre_falloff = usable(torch.as_tensor(falloff(centre_distance), dtype=torch.float64))
     max_angle, angle_sum, max_ratio = 0.0, 0.0, 0.0
     for start in range(0, points.shape[0], 4096):
         dirs, distance = light_geometry(points[start : start + 4096], lights)
@@ -203,9 +206,7 @@ def light_spread(points: torch.Tensor, lights: torch.Tensor, falloff: Callable) 
         angle = torch.rad2deg(torch.acos(cosine))
         max_angle = max(max_angle, float(angle.max()))
         angle_sum += float(angle.sum())
-        ratio = torch.as_tensor(falloff(distance), dtype=torch.float64) / centre_falloff
-        if not bool(((ratio > 0) & torch.isfinite(ratio)).all()):
-            raise unusable
+        ratio = usable(torch.as_tensor(falloff(distance), dtype=torch.float64) / centre_falloff)
         max_ratio = max(max_ratio, float((ratio - 1.0).abs().max()))
     return {
         "max_direction_deg": max_angle,

@@ -934,7 +934,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     # The heuristic pattern files, report, charts, results and config are moved into place
     # together: a run refused or interrupted part-way leaves them all describing the last
     # finished run (learned and searched files are kept per settings, see ``_reusable``).
-    obsolete: list = []  # an earlier run's charts that this report does not show
+    obsolete: list = []  # an earlier run's charts that this report does not show: they would contradict it
     with staged_files(out_dir, last=("results.json", "config.json"), obsolete=obsolete) as staging:
         for method in methods:
             if method.kind == "heuristic":

@@ -569,23 +569,21 @@ def pivot_cell(row: dict, key: str, digits: int) -> str:
     return _fmt(row[key], digits) + note + (f" (mean of {row['seeds']} seeds)" if row["seeds"] > 1 else "")
 
 
-def write_report(results: dict, out_dir: Path, pattern_sets: dict, staging: Path | None = None) -> Path:
+def write_report(results: dict, out_dir: Path, pattern_sets: dict, into: Path) -> Path:
     """Write ``report.md`` and the charts (``CHARTS``) for the output folder ``out_dir``.
 
     Args:
         results: ``run_compare`` results (with ``summary``).
         out_dir: output folder; the report's links are relative to it.
         pattern_sets: method id -> (M, R, C, 3) patterns, for the pattern figure.
-        staging: folder the files are written into (``capture_sim.atomic.staged_files``, which
-            moves them into ``out_dir``; the caller then removes the charts of ``out_dir`` that
-            this report does not show). Without it the files go straight into ``out_dir``, whose
-            earlier charts that this report does not show are removed.
+        into: folder the files are written into: ``out_dir``'s staging folder
+            (``capture_sim.atomic.staged_files``). A chart this report does not show is not
+            written; the caller removes an earlier run's copy of it.
 
     Returns:
-        Path of report.md as written (inside ``staging`` when given).
+        Path of report.md in ``into``.
     """
-    out_dir = Path(out_dir)
-    into = out_dir if staging is None else Path(staging)
+    out_dir, into = Path(out_dir), Path(into)
     summary = results.get("summary") or summary_tables(results)
     rows = summary["rows"]
     default = results["default_noise"]
@@ -609,9 +607,6 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict, staging: Path
     if entries:
         save_figure(chart_patterns(entries, "Each row: one pattern set, patterns left to right; superpixel grid as on the panel."), into / CHARTS["patterns"])
         written.add("patterns")
-    if staging is None:
-        for name in set(CHARTS) - written:  # an earlier run's chart would contradict this report
-            (out_dir / CHARTS[name]).unlink(missing_ok=True)
 
     lines = ["# Pattern comparison", "", caption, ""]
     counts = results["pattern_counts"]

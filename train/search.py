@@ -16,8 +16,8 @@ small scene sets. Derivative-free algorithms (the default LN_BOBYQA) cope; LD_* 
 fail on such a jump, which ends the search with the best point seen.
 
 Search generates patterns at a low edge sharpness (4 per cell instead of the families' binary
-default, ``patterns.families.DEFAULT_SHARPNESS``): there, split and block edges are binary and their positions get no gradient, and a derivative-free search
-sees a staircase. The written pattern file holds the patterns exactly as evaluated (same sharpness,
+default, ``patterns.families.DEFAULT_SHARPNESS``): there, split and block edges are binary and
+their positions get no gradient, and a derivative-free search sees a staircase. The written pattern file holds the patterns exactly as evaluated (same sharpness,
 soft edges), so its recorded MAE belongs to the file.
 
 NLopt may stop by raising instead of returning (for example ``nlopt.RoundoffLimited`` from
