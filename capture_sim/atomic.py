@@ -139,7 +139,7 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list 
     Callers check the final paths first (``refuse_overwriting``): a rename cannot replace a folder.
     """
     folder = Path(folder)
-    created = [path for path in (folder, *folder.parents) if not path.exists()]  # deepest first
+    created = _missing_folders(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=".staging.", dir=folder))
@@ -162,11 +162,22 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list 
         move(relative for relative in files if relative.parts[0] in last)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
-        for path in created:
-            with contextlib.suppress(OSError):
-                path.rmdir()  # only if nothing else was put there meanwhile
+        _remove_empty(created)
         raise
     shutil.rmtree(staging, ignore_errors=True)
+
+
+def _missing_folders(folder: Path) -> list[Path]:
+    """``folder`` and those of its parents that do not exist, deepest first."""
+    return [path for path in (folder, *folder.parents) if not path.exists()]
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove the folders (deepest first) that are still empty: a refused or failed command
+    leaves no empty folders that it created."""
+    for path in folders:
+        with contextlib.suppress(OSError):
+            path.rmdir()  # only if nothing else was put there meanwhile
 
 
 @contextmanager
@@ -184,6 +195,7 @@ def exclusive_output(path: str | Path, command: str):
     path = Path(path)
     lock_path = path.with_name(f".{path.name}.lock")
     check_replaceable(lock_path)
+    created = _missing_folders(lock_path.parent)
     try:
         lock_path.parent.mkdir(parents=True, exist_ok=True)
         handle = open(lock_path, "a")
@@ -196,8 +208,11 @@ def exclusive_output(path: str | Path, command: str):
             raise InputError(f"another {command} is writing {path} right now; wait for it or choose another output") from None
         try:
             yield
-        finally:
+        except BaseException:
             lock_path.unlink(missing_ok=True)
+            _remove_empty(created)  # e.g. a run refused after the lock: no empty output folder
+            raise
+        lock_path.unlink(missing_ok=True)
 
 
 def write_bytes(path: str | Path, data: bytes) -> None:

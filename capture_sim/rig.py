@@ -375,7 +375,7 @@ def panel_positions(
         rows, cols: superpixel grid R x C over the whole panel.
         diagonal_inch: panel diagonal in inches.
         aspect: (width, height) aspect ratio.
-        curvature_radius: radius of curvature in metres, or None for a flat panel.
+        curvature_radius: radius of curvature in metres, at least width / pi; None or 0 for a flat panel.
         distance: metres the panel centre sits behind the camera centre (along -z).
         offset: (x, y) metres of the panel centre from the camera's optical axis.
         tilt_deg: tilt about the x axis in degrees.
@@ -397,6 +397,11 @@ def panel_positions(
     u = (np.arange(cols) + 0.5) / cols * width - width / 2  # arc length along the panel, metres
     v = (np.arange(rows) + 0.5) / rows * height - height / 2  # y down: row 0 at the top (negative y)
     uu, vv = np.meshgrid(u, v)
+    # Beyond a half cylinder (arc angle above 90 degrees each side) the edges would fold back past
+    # the camera plane: no monitor is curved so, and such a number is a unit or typing mistake.
+    if curvature_radius and not (math.isfinite(curvature_radius) and curvature_radius >= width / math.pi):
+        raise InputError(f"panel curvature_radius must be at least the panel width / pi = {width / math.pi:.3g} m "
+                         f"(0 or absent for a flat panel), got {curvature_radius!r}")
     if curvature_radius:
         theta = uu / curvature_radius
         x = curvature_radius * np.sin(theta)

@@ -331,6 +331,10 @@ def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeyp
         # TOML booleans are not numbers (false == 0 used to switch quantisation off).
         "bits_bool": ("bit_depth = 12", "bit_depth = false"),
         "gamma_bool": ("gamma = 2.2", "gamma = true"),
+        # A radius below width / pi folds the panel's edges back past the camera plane.
+        "curvature": ("curvature_radius = 1.8", "curvature_radius = 0.3"),
+        "curvature_negative": ("curvature_radius = 1.8", "curvature_radius = -1.8"),
+        "curvature_nan": ("curvature_radius = 1.8", "curvature_radius = nan"),
     }.items():
         assert old in text, (name, old)
         (tmp_path / f"{name}.toml").write_text(text.replace(old, new))
@@ -385,11 +389,14 @@ def test_ctrl_c_in_search_points_to_the_partial_trace(tmp_path, scene_file, caps
         assert run(command) == 130
         err = capsys.readouterr().err.strip()
         assert err.startswith("displex: interrupted; ") and err.endswith(hint) and "\n" not in err, err
-    # A newline in the output's name is escaped: the message stays one line.
+    # An interruption before the first evaluation does not pass off an earlier run's partial
+    # trace as this run's; a newline in the output's name is escaped: the message stays one line.
     odd = tmp_path / "s\nt.npz"
     partial_trace_path(odd).write_text("index,mae\n")
+    flushed = False
     assert run(command[:-1] + [str(odd)]) == 130
-    assert capsys.readouterr().err.strip().endswith("s\\nt.trace.partial.csv")
+    err = capsys.readouterr().err.strip()
+    assert "no evaluation was made yet; an earlier run's" in err and err.endswith("s\\nt.trace.partial.csv"), err
 
 
 def test_patterns_make_and_export_round_trip(tmp_path):

@@ -1,4 +1,5 @@
 """Pattern learning: reproducible, resumable, improves its loss, clear errors."""
+import dataclasses
 import json
 import math
 import shutil
@@ -334,3 +335,8 @@ def test_a_second_run_on_the_same_output_is_refused(tmp_path, scene_dirs):
     assert not (tmp_path / ".a.npz.lock").exists()
     train_patterns(config, out, progress=False)
     assert sorted(path.name for path in tmp_path.iterdir()) == ["a.ckpt.pt", "a.config.json", "a.npz"]
+    # A run refused after taking the lock (here its start file) leaves no output folder it made.
+    nested = tmp_path / "new" / "folder" / "b.npz"
+    with pytest.raises(InputError, match="missing.npz"):
+        train_patterns(dataclasses.replace(config, init=str(tmp_path / "missing.npz")), nested, progress=False)
+    assert not (tmp_path / "new").exists()

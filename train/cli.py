@@ -299,13 +299,26 @@ def _search_interrupted(args) -> str:
     partial = partial_trace_path(args.out)
     if not partial.exists():
         return "no evaluation was made yet"
+    if _file_stamp(partial) == getattr(args, "earlier_partial", None):
+        # the search removes an earlier interrupted run's partial trace only once its inputs are checked
+        return f"no evaluation was made yet; an earlier run's evaluations are still in {partial}"
     return f"the evaluations made so far are in {partial}"
+
+
+def _file_stamp(path: Path) -> tuple[int, int] | None:
+    """(inode, modification time in ns) of an existing file, None if there is none."""
+    try:
+        status = path.stat()
+    except OSError:
+        return None
+    return status.st_ino, status.st_mtime_ns
 
 
 def _search(args) -> None:
     from train.config_io import load_config
-    from train.search import SearchConfig, output_files, run_search
+    from train.search import SearchConfig, output_files, partial_trace_path, run_search
 
+    args.earlier_partial = _file_stamp(partial_trace_path(args.out))  # for the Ctrl-C hint
     overrides = {
         "family": args.family,
         "num_patterns": args.num_patterns,
