@@ -2,7 +2,8 @@
 
     O[k](x) = f(l_k, v) * max(0, n . l_k) * falloff(d_k),   f = sum_j w_j(x) f_j
 
-Used to synthesise OLAT stacks and by the baseline inverse renderer. Diffuse and specular parts are
+Used to synthesise OLAT stacks (the baseline inverse renderer shades with its own factorised form of
+the same model, ``reconstruct.inverse_render``, tested against this one). Diffuse and specular parts are
 returned separately (what a polarisation camera separates); their sum is the OLAT stack.
 """
 from __future__ import annotations
@@ -13,7 +14,7 @@ import torch
 
 from capture_sim.brdf import cook_torrance_specular
 from capture_sim.geometry import light_geometry, view_directions
-from capture_sim.rig import Falloff
+from capture_sim.rig import Falloff, check_falloff_values
 
 
 def render_olat(
@@ -56,11 +57,11 @@ def render_olat(
         limit = torch.finfo(points.dtype).max
         return tuple(image.clamp(max=limit).to(points.dtype) for image in rendered)
     light_dirs, distance = light_geometry(points, lights)  # (N, K, 3), (N, K)
-    if getattr(falloff, "kind", "inverse_square") != "inverse_square":
-        falloff.check(distance)  # DESIGN section 3: a fitted falloff can be negative or infinite
+    falloff_values = falloff(distance)
+    check_falloff_values(falloff_values, distance)  # DESIGN section 3: a fitted falloff can be negative or infinite
     view_dir = view_directions(points)[:, None, :]  # (N, 1, 3)
     n_dot_l = (normals[:, None, :] * light_dirs).sum(-1)
-    irradiance = n_dot_l.clamp_min(0.0) * falloff(distance)  # (N, K)
+    irradiance = n_dot_l.clamp_min(0.0) * falloff_values  # (N, K)
     if visibility is not None:
         irradiance = irradiance * visibility
     rho_d = weights @ diffuse_albedo if diffuse_albedo.dim() == 2 else (weights[..., None] * diffuse_albedo).sum(1)

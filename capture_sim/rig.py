@@ -116,13 +116,21 @@ class Falloff:
 
     def check(self, distance: torch.Tensor) -> None:
         """Raise ``InputError`` unless the falloff is positive and finite at every distance given."""
-        values = self(distance.detach())
-        if not bool(torch.isfinite(values).all()) or bool((values <= 0).any()):
-            lo, hi = float(distance.min()), float(distance.max())
-            raise InputError(
-                f"falloff {self.kind} (a={self.a:g}, b={self.b:g}) is not positive and finite over "
-                f"light distances {lo:.3f}..{hi:.3f} m"
-            )
+        check_falloff_values(self(distance.detach()), distance, f"falloff {self.kind} (a={self.a:g}, b={self.b:g})")
+
+
+def check_falloff_values(values: torch.Tensor, distance: torch.Tensor, name: str = "falloff") -> None:
+    """Raise ``InputError`` unless every falloff value is positive and finite (DESIGN section 3: a
+    fitted falloff can be negative or infinite at distances its fit did not cover).
+
+    Args:
+        values: falloff factors at ``distance``, any shape.
+        distance: light distances in metres, the same shape.
+        name: what the falloff is, for the message.
+    """
+    if not bool(torch.isfinite(values).all()) or bool((values <= 0).any()):
+        lo, hi = float(distance.min()), float(distance.max())
+        raise InputError(f"{name} is not positive and finite over light distances {lo:.3f}..{hi:.3f} m")
 
 
 GAMMA_RANGE = (0.1, 10.0)

@@ -13,7 +13,7 @@ Gradient surrogates (so that learning feels the sensor):
 - clipping to [0, 1] is exact in the forward pass; its backward pass is the exact slope 1 inside
   [0, 1] and a decaying tail exp(-beta * excess) outside, where excess is the distance beyond the
   range, so saturated or black pixels still tell the patterns which way leaves saturation
-  (beta = ``clip_sharpness``) instead of going silent as a true clip would;
+  (beta = ``CLIP_SHARPNESS``) instead of going silent as a true clip would;
 - quantisation is straight-through: exact rounding forward, identity backward.
 
 Exposure: a fixed number, or "auto": the largest e that puts the 99.9th percentile of the
@@ -173,6 +173,10 @@ def check_exposure_range(exposure: float, *exposed: torch.Tensor) -> None:
         raise InputError(f"exposure {exposure:g} is too small: it is 0 in {exposed[0].dtype}; use a larger value or 'auto'")
 
 
+CLIP_SHARPNESS = 50.0
+"""beta of the clipping's gradient tail exp(-beta * excess), per unit of full scale (module docstring)."""
+
+
 class _SaturatingClip(torch.autograd.Function):
     """Exact clip to [0, 1] forward; slope 1 inside and a decaying tail outside backward."""
 
@@ -208,7 +212,6 @@ def sensor(
     noise: NoiseModel | None,
     bit_depth: int | None,
     generator: torch.Generator | None = None,
-    clip_sharpness: float = 50.0,
 ) -> torch.Tensor:
     """Apply sensor noise, saturation and quantisation to exposed noise-free signal.
 
@@ -217,19 +220,16 @@ def sensor(
         noise: Poisson-Gaussian model, or None for a noise-free sensor.
         bit_depth: quantisation bits, or None for none.
         generator: torch random generator for the noise (seeded for reproducibility).
-        clip_sharpness: beta of the clip's gradient tail, per unit of full scale.
 
     Returns:
         (...) captures in [0, 1], same shape as ``signal``, in its dtype or float32 if narrower.
 
     Raises:
-        InputError: a bit depth outside 1..24 or a clip sharpness that is not a positive number.
+        InputError: a bit depth outside 1..24.
         Values are not scanned (a hot path of learning; ``simulate`` checks its inputs).
     """
     if bit_depth is not None and not (isinstance(bit_depth, numbers.Integral) and not isinstance(bit_depth, bool) and 1 <= bit_depth <= 24):
         raise InputError(f"bit_depth must be None or a whole number in 1..24, got {bit_depth!r}")
-    if not 0 < clip_sharpness < math.inf:
-        raise InputError(f"clip_sharpness must be a positive number, got {clip_sharpness!r}")
     # At least float32: float16's smallest normal (6e-5) is a variance floor far above the read
     # noise's, and its spacing near 1 is coarser than 12-bit quantisation.
     signal = signal.to(torch.promote_types(signal.dtype, torch.float32))
@@ -239,7 +239,7 @@ def sensor(
         std = torch.sqrt(noise.shot * signal.clamp_min(0.0) + noise.read_std**2 + torch.finfo(signal.dtype).tiny)
         z = torch.randn(signal.shape, generator=generator, dtype=signal.dtype)
         signal = signal + std * z
-    captured = _SaturatingClip.apply(signal, clip_sharpness)
+    captured = _SaturatingClip.apply(signal, CLIP_SHARPNESS)
     if bit_depth is not None:
         captured = _StraightThroughRound.apply(captured, float(2 ** int(bit_depth) - 1))
     return captured

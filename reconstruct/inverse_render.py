@@ -61,6 +61,7 @@ from torch.utils.checkpoint import checkpoint
 from capture_sim.brdf import MIN_ALPHA
 from capture_sim.errors import InputError, check_array
 from capture_sim.geometry import light_geometry, view_directions
+from capture_sim.rig import check_falloff_values
 from reconstruct.photometric_stereo import PSConfig, solve_ps
 
 RENDER_CHUNK_PIXELS = 4096
@@ -85,7 +86,7 @@ class ShadingGeometry:
         anchor: (P, 3) points x the light directions start from, metres, camera frame.
         view: (P, 3) unit vectors from the anchor towards the camera centre.
         inverse_distance: (P, K) 1 / |p_k - x|, 1/metres.
-        falloff: (P, K) falloff(|p_k - x|); 0 where the falloff is not positive and finite.
+        falloff: (P, K) falloff(|p_k - x|), positive and finite.
         inverse_half_norm: (P, K) 1 / |l_k + v|.
     """
 
@@ -124,6 +125,9 @@ def shading_geometry(points: torch.Tensor, lights: torch.Tensor, falloff: Callab
 
     Returns:
         ShadingGeometry in the dtype of ``points``.
+
+    Raises:
+        InputError: the falloff is not positive and finite at some pixel's light distance.
     """
     with torch.no_grad():
         points = points.detach()
@@ -140,7 +144,8 @@ def shading_geometry(points: torch.Tensor, lights: torch.Tensor, falloff: Callab
             light_dirs, distance = light_geometry(anchor[block], lights, min_distance)
             inverse_distance[block] = 1.0 / distance
             values = torch.as_tensor(falloff(distance), dtype=points.dtype)
-            falloff_values[block] = torch.where(torch.isfinite(values) & (values > 0), values, torch.zeros((), dtype=points.dtype))
+            check_falloff_values(values, distance)
+            falloff_values[block] = values
             inverse_half_norm[block] = 1.0 / (light_dirs + view[block, None, :]).norm(dim=-1).clamp_min(_EPS)
     return ShadingGeometry(lights, anchor, view, inverse_distance, falloff_values, inverse_half_norm)
 
@@ -540,7 +545,7 @@ def olat_least_squares(captures, plan: EmissionPlan, points, lights, falloff, sh
         plan: emission plan of an OLAT-style emission (``plan.gain`` is not None).
         points: (N, 3) surface points, metres, camera frame.
         lights: (K, 3) superpixel positions, metres, camera frame.
-        falloff: distance falloff.
+        falloff: distance falloff, positive and finite over the scene (else ``InputError``).
         shadow_threshold: captures at or below this are shadowed. Deliberately tiny: with auto
             exposure set by specular highlights, the diffuse captures of a glossy object are dim
             (1e-4..1e-3) but carry the normal; a cut near 1e-3 leaves only highlights (40 degrees
@@ -562,8 +567,9 @@ def olat_least_squares(captures, plan: EmissionPlan, points, lights, falloff, sh
         block = slice(start, start + chunk_pixels)
         observed = captures[:, block].double().permute(1, 0, 2)  # (B, M, 3)
         light_dirs, distance = light_geometry(points[block].double(), plan_lights, 1e-3)
-        lighting = light_dirs * torch.as_tensor(falloff(distance), dtype=torch.float64)[..., None]  # f l, (B, M, 3)
-        lighting = torch.nan_to_num(lighting, nan=0.0, posinf=0.0, neginf=0.0)
+        values = torch.as_tensor(falloff(distance), dtype=torch.float64)
+        check_falloff_values(values, distance)
+        lighting = light_dirs * values[..., None]  # f l, (B, M, 3)
         positive_gain = gain > 0
         ratio = torch.where(positive_gain, observed / gain.clamp_min(1e-30), torch.zeros((), dtype=torch.float64))  # y, (B, M, 3)
         grey = ratio.sum(-1) / positive_gain.sum(-1).clamp_min(1)

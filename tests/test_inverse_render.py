@@ -162,10 +162,11 @@ def test_sharp_lobes_in_float32_match_the_simulator():
         assert torch.allclose(lobe[:, 0].double(), expected, rtol=1e-5 if dtype == torch.float32 else 1e-12)
 
 
-@pytest.mark.parametrize("bad", ["normals_shape", "negative_emission", "nan_normals", "roughness_range", "pixel_mismatch"])
+@pytest.mark.parametrize("bad", ["normals_shape", "negative_emission", "nan_normals", "roughness_range", "pixel_mismatch", "falloff"])
 def test_render_bad_input_raises(bad):
     points, normals, lights, weights, diffuse, specular, roughness = _random_scene(num_pixels=5)
     emission = torch.rand(2, lights.shape[0], 3, dtype=torch.float64)
+    falloff = Falloff("fitted", a=-1.0, b=0.0) if bad == "falloff" else Falloff()  # negative everywhere
     if bad == "normals_shape":
         normals = normals[:, :2]
     elif bad == "negative_emission":
@@ -175,10 +176,10 @@ def test_render_bad_input_raises(bad):
         normals[0, 0] = math.nan
     elif bad == "roughness_range":
         roughness = roughness + 1.0
-    else:
+    elif bad == "pixel_mismatch":
         points = points[:3]
     with pytest.raises(InputError):
-        render_under_patterns(normals, points, lights, emission, weights, diffuse, specular, roughness, Falloff())
+        render_under_patterns(normals, points, lights, emission, weights, diffuse, specular, roughness, falloff)
 
 
 def test_degenerate_inputs_give_finite_values_and_gradients():
@@ -493,10 +494,12 @@ def test_fit_bad_input_raises(small_scene):
     scene, pixels = small_scene
     captures, emission, *_ = _olat_fit_data(pixels)
     arguments = [captures, emission, pixels.points, pixels.lights(), Falloff(), pixels.transport.pixel_index, scene.height, scene.width]
-    for position, bad in ((0, captures[:, :, :2]), (1, emission[:-1]), (2, pixels.points[:-1]), (5, pixels.transport.pixel_index + 10**6)):
+    # A fitted falloff with its pole inside the scene (DESIGN section 3: negative below 0.608 m).
+    pole = Falloff("fitted", a=-5.4580, b=14.7449)
+    for position, bad in ((0, captures[:, :, :2]), (1, emission[:-1]), (2, pixels.points[:-1]), (5, pixels.transport.pixel_index + 10**6), (4, pole)):
         wrong = list(arguments)
         wrong[position] = bad
-        with pytest.raises(InputError):
+        with pytest.raises(InputError, match="falloff is not positive" if position == 4 else None):
             fit_inverse_render(*wrong, FitConfig(iterations=1))
 
 
