@@ -57,8 +57,9 @@ MAX_MIN_DISTANCE = 0.1
 
 
 @dataclass(frozen=True)
-class PSConfig:
-    """Settings of the analytic photometric-stereo solver (``solve_ps``)."""
+class SolverSettings:
+    """Settings that the analytic solver (``PSConfig``) and Woodham (``WoodhamConfig``) share: the
+    shadow search, the damping and the per-pixel flags."""
 
     damping: float = 1e-9
     """Tikhonov damping relative to each 3x3 system's scale: lambda = damping * trace / 3. Raised
@@ -67,10 +68,6 @@ class PSConfig:
     max_shadow_iterations: int = 20
     """Cap on attached-shadow mask updates (each re-solves only pixels whose mask changed; the
     first fits every pixel, so at least 1)."""
-    max_alternations: int = 50
-    """Cap on albedo/normal alternations per shadow mask (usually a few suffice)."""
-    tolerance_deg: float = 1e-3
-    """Alternations stop when no pixel's normal moves by more than this (degrees)."""
     line_search_steps: int = 4
     """Times a shadow-search step that would increase the residual is halved before giving up."""
     kink_tolerance_deg: float = 0.5
@@ -82,7 +79,9 @@ class PSConfig:
     dark_threshold: float = 1e-3
     """Pixels whose brightest capture is below this (full scale 1) are flagged dark."""
     saturation_threshold: float = 0.999
-    """Captures at or above this are saturated: their equations are dropped, the pixel flagged."""
+    """Captures at or above this are saturated: their equations are dropped, the pixel flagged.
+    Both thresholds assume exposed captures in [0, 1] (scale a raw OLAT stack first, see
+    ``solve_woodham``)."""
     condition_threshold: float = 1e4
     """Pixels whose normal condition number (``pixel_solve.normal_condition``, roughly the squared
     noise amplification of the normal) exceeds this are flagged ill_conditioned."""
@@ -99,37 +98,46 @@ class PSConfig:
     changes with the normal."""
 
     def __post_init__(self):
-        check_shared_settings(self)
+        """Refuse bad values: field types, damping outside (0, 1], fewer than one shadow iteration
+        (the first one is the fit itself), negative line-search steps, non-positive tolerances and
+        thresholds, ``min_distance`` outside (0, MAX_MIN_DISTANCE], dark and saturation thresholds
+        out of order, ``residual_threshold`` or ``grazing_cos`` outside [0, 1]."""
+        check_field_types(self)
+        name = type(self).__name__
+        if not 0 < self.damping <= 1:  # relative to the system's scale: above 1 it outweighs the data
+            raise InputError(f"{name}: damping must lie in (0, 1], got {self.damping!r}")
+        if self.max_shadow_iterations < 1 or self.line_search_steps < 0:
+            raise InputError(f"{name}: need max_shadow_iterations >= 1 and line_search_steps >= 0, got "
+                             f"{self.max_shadow_iterations!r} and {self.line_search_steps!r}")
+        for key in ("kink_tolerance_deg", "restart_condition", "condition_threshold"):
+            if not getattr(self, key) > 0:
+                raise InputError(f"{name}: {key} must be positive, got {getattr(self, key)!r}")
+        if not 0 < self.min_distance <= MAX_MIN_DISTANCE:
+            raise InputError(f"{name}: min_distance must lie in (0, {MAX_MIN_DISTANCE:g}] metres, got {self.min_distance!r}")
+        if not 0 <= self.dark_threshold < self.saturation_threshold <= 1:
+            raise InputError(f"{name}: need 0 <= dark_threshold < saturation_threshold <= 1, got {self.dark_threshold!r} and {self.saturation_threshold!r}")
+        for key in ("residual_threshold", "grazing_cos"):
+            value = getattr(self, key)
+            if not 0 <= value <= 1:
+                raise InputError(f"{name}: {key} must lie in [0, 1], got {value!r}")
+
+
+@dataclass(frozen=True)
+class PSConfig(SolverSettings):
+    """Settings of the analytic photometric-stereo solver (``solve_ps``): the shared ones
+    (``SolverSettings``) and the albedo/normal alternation's."""
+
+    max_alternations: int = 50
+    """Cap on albedo/normal alternations per shadow mask (usually a few suffice)."""
+    tolerance_deg: float = 1e-3
+    """Alternations stop when no pixel's normal moves by more than this (degrees)."""
+
+    def __post_init__(self):
+        super().__post_init__()
         if self.max_alternations < 1:
             raise InputError(f"PSConfig: max_alternations must be >= 1, got {self.max_alternations!r}")
         if not self.tolerance_deg > 0:
             raise InputError(f"PSConfig: tolerance_deg must be positive, got {self.tolerance_deg!r}")
-
-
-def check_shared_settings(config) -> None:
-    """Refuse bad values of the settings ``PSConfig`` and ``WoodhamConfig`` share: field types,
-    damping outside (0, 1], fewer than one shadow iteration (the first one is the fit itself),
-    negative line-search steps, non-positive tolerances and thresholds, ``min_distance`` outside
-    (0, MAX_MIN_DISTANCE], dark and saturation thresholds out of order, ``residual_threshold`` or
-    ``grazing_cos`` outside [0, 1]."""
-    check_field_types(config)
-    name = type(config).__name__
-    if not 0 < config.damping <= 1:  # relative to the system's scale: above 1 it outweighs the data
-        raise InputError(f"{name}: damping must lie in (0, 1], got {config.damping!r}")
-    if config.max_shadow_iterations < 1 or config.line_search_steps < 0:
-        raise InputError(f"{name}: need max_shadow_iterations >= 1 and line_search_steps >= 0, got "
-                         f"{config.max_shadow_iterations!r} and {config.line_search_steps!r}")
-    for key in ("kink_tolerance_deg", "restart_condition", "condition_threshold"):
-        if not getattr(config, key) > 0:
-            raise InputError(f"{name}: {key} must be positive, got {getattr(config, key)!r}")
-    if not 0 < config.min_distance <= MAX_MIN_DISTANCE:
-        raise InputError(f"{name}: min_distance must lie in (0, {MAX_MIN_DISTANCE:g}] metres, got {config.min_distance!r}")
-    if not 0 <= config.dark_threshold < config.saturation_threshold <= 1:
-        raise InputError(f"{name}: need 0 <= dark_threshold < saturation_threshold <= 1, got {config.dark_threshold!r} and {config.saturation_threshold!r}")
-    for key in ("residual_threshold", "grazing_cos"):
-        value = getattr(config, key)
-        if not 0 <= value <= 1:
-            raise InputError(f"{name}: {key} must lie in [0, 1], got {value!r}")
 
 
 @dataclass(frozen=True, eq=False)

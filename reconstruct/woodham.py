@@ -30,8 +30,8 @@ from reconstruct.photometric_stereo import (
     MAX_PIXELS_PER_SOLVE,
     PatternEvaluator,
     PSResult,
+    SolverSettings,
     capture_flags,
-    check_shared_settings,
     check_image_inputs,
     check_masked_inputs,
     check_solver_inputs,
@@ -47,42 +47,16 @@ from reconstruct.shadow_search import restarted_search
 
 
 @dataclass(frozen=True)
-class WoodhamConfig:
-    """Settings of the Woodham least-squares solver (``solve_woodham``)."""
+class WoodhamConfig(SolverSettings):
+    """Settings of the Woodham least-squares solver (``solve_woodham``): the shared ones
+    (``SolverSettings``; the damping applies to each channel's 3x3 system) and the OLAT shadow cut."""
 
-    damping: float = 1e-9
-    """Tikhonov damping relative to each channel's 3x3 system (raised to the dtype's floor, as
-    ``PSConfig.damping``)."""
     shadow_threshold: float = 0.01
     """OLAT only: captures below this fraction of the pixel's brightest OLAT capture (per channel)
     are treated as shadowed and dropped."""
-    max_shadow_iterations: int = 20
-    """Cap on attached-shadow mask updates (at least 1: the first is the fit itself)."""
-    line_search_steps: int = 4
-    """Times a shadow-search step that would increase the residual is halved before giving up."""
-    kink_tolerance_deg: float = 0.5
-    """A rejected shadow-search step shorter than this (degrees) still counts as converged."""
-    restart_condition: float = 300.0
-    """Pixels with a larger condition number (or unconverged) are searched again from 12 more
-    starting normals (``math.inf`` disables restarts)."""
-    dark_threshold: float = 1e-3
-    """Pixels whose brightest capture is below this (full scale 1) are flagged dark."""
-    saturation_threshold: float = 0.999
-    """Captures at or above this (full scale 1) are dropped and their pixel flagged saturated.
-    Both thresholds assume exposed captures in [0, 1]: scale a raw OLAT stack first (see
-    ``solve_woodham``)."""
-    condition_threshold: float = 1e4
-    """Pixels whose normal condition number exceeds this are flagged ill_conditioned."""
-    min_distance: float = 1e-3
-    """Metres; distances are clamped to at least this; closer points or points with
-    z <= min_distance are flagged bad_geometry."""
-    residual_threshold: float = 0.1
-    """Pixels whose relative fit residual exceeds this are flagged poor_fit (as ``PSConfig``)."""
-    grazing_cos: float = 0.1
-    """Valid normals with n . v below this are flagged grazing (as ``PSConfig``)."""
 
     def __post_init__(self):
-        check_shared_settings(self)
+        super().__post_init__()
         if not 0 <= self.shadow_threshold < 1:
             raise InputError(f"WoodhamConfig: shadow_threshold must lie in [0, 1), got {self.shadow_threshold!r}")
 
