@@ -272,20 +272,30 @@ RIG_KEYS = {
     "": ("name", "exposure", "bit_depth", "working_distance", "camera", "display", "noise", "falloff"),
     "camera": ("height", "width", "fx", "fy", "cx", "cy", "exposure_ms"),
     "display": ("gamma", "scale", "backlight", "panel_pixels", "light_positions", "panel"),
+    "display.panel": ("rows", "cols", "diagonal_inch", "aspect", "curvature_radius", "distance", "offset", "tilt_deg"),
+    "noise": ("shot", "read_std"),
+    "falloff": ("kind", "a", "b"),
 }
-"""Keys of a rig TOML by table (``[noise]``, ``[falloff]`` and ``[display.panel]`` are checked by
-the constructors they feed). A misspelt key would otherwise fall back to its default silently."""
+"""Keys of a rig TOML by table. A misspelt key would otherwise fall back to its default silently."""
 
 
 def _check_rig_keys(config: dict, name: str) -> None:
     for table, known in RIG_KEYS.items():
-        values = config if not table else config.get(table, {})
-        if not isinstance(values, dict):
-            raise InputError(f"rig {name}: [{table}] must be a table")
+        values = config
+        for part in table.split(".") if table else ():
+            values = values.get(part, {})
+            if not isinstance(values, dict):
+                raise InputError(f"rig {name}: [{table}] must be a table")
         unknown = sorted(set(values) - set(known))
         if unknown:
             where = f"[{table}]" if table else "top level"
             raise InputError(f"rig {name}: unknown key(s) {', '.join(unknown)} at {where}; known: {', '.join(known)}")
+    falloff = config.get("falloff", {})
+    # a and b belong to the fitted kind alone: missing, they would fall back to 1 / d^2 silently.
+    if falloff.get("kind", "inverse_square") == "fitted" and not {"a", "b"} <= set(falloff):
+        raise InputError(f"rig {name}: [falloff] kind = \"fitted\" needs both a and b (1 / (a + b d^2))")
+    if falloff.get("kind", "inverse_square") == "inverse_square" and {"a", "b"} & set(falloff):
+        raise InputError(f"rig {name}: [falloff] a and b apply to kind = \"fitted\" only; this falloff is inverse_square")
 
 
 def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:

@@ -335,6 +335,11 @@ def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeyp
         "curvature": ("curvature_radius = 1.8", "curvature_radius = 0.3"),
         "curvature_negative": ("curvature_radius = 1.8", "curvature_radius = -1.8"),
         "curvature_nan": ("curvature_radius = 1.8", "curvature_radius = nan"),
+        # Misspelt keys of every table, and falloff constants of the wrong kind, are errors too.
+        "panel_typo": ("tilt_deg = 15.0", "tilt_deg = 15.0\ntilt = 5.0"),
+        "noise_typo": ("read_std = 5e-4", "read_std = 5e-4\nread_noise = 1e-3"),
+        "fitted_without_ab": ('kind = "inverse_square"', 'kind = "fitted"\na = 1.0'),
+        "square_with_ab": ('kind = "inverse_square"', 'kind = "inverse_square"\nb = 14.7'),
     }.items():
         assert old in text, (name, old)
         (tmp_path / f"{name}.toml").write_text(text.replace(old, new))
@@ -344,6 +349,8 @@ def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeyp
         assert err.startswith("displex: error: rig") and "\n" not in err, err
         if name.endswith("_bool"):
             assert "got False" in err or "got True" in err, err
+        if name.endswith("_typo"):
+            assert "unknown key(s)" in err and "known: " in err, err
 
     def exhausted(*args, **kwargs):
         raise RuntimeError("[enforce fail at alloc_cpu.cpp:127] DefaultCPUAllocator: can't allocate memory: you tried to allocate 80000000000 bytes.")

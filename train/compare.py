@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import staged_files, write_json
+from capture_sim.atomic import refuse_overwriting, staged_files, write_json
 from capture_sim.display import display_emission
 from capture_sim.errors import DisplexWarning, InputError, check_seed
 from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, Rig, load_rig, rig_file
@@ -879,6 +879,9 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
 
     out_dir = Path(out_dir)
     began = time.perf_counter()
+    # A file where the folder goes, or a folder nothing can be written into: refused now, not
+    # when the results are written after the work.
+    refuse_overwriting([("results", out_dir / "results.json")], [])
     pattern_dir = out_dir / "patterns"
     if (pattern_dir / "__init__.py").exists():  # e.g. out = "." in the repository root
         raise InputError(f"compare output folder {out_dir} holds a Python package patterns/ (the source tree?), "
