@@ -3,7 +3,7 @@
     O[k](x) = f(l_k, v) * max(0, n . l_k) * falloff(d_k),   f = sum_j w_j(x) f_j
 
 Used to synthesise OLAT stacks (the baseline inverse renderer shades with its own factorised form of
-the same model, ``reconstruct.inverse_render``, tested against this one). Diffuse and specular parts are
+the same model, ``reconstruct.basis_render``, tested against this one). Diffuse and specular parts are
 returned separately (what a polarisation camera separates); their sum is the OLAT stack.
 """
 from __future__ import annotations

@@ -32,7 +32,9 @@ import torch
 
 from capture_sim.errors import InputError, check_array
 from capture_sim.geometry import light_geometry
-from reconstruct.inverse_render import FitConfig, FitProblem, InitialEstimate, render_under_patterns
+from reconstruct.basis_render import render_under_patterns
+from reconstruct.fit_start import InitialEstimate
+from reconstruct.inverse_render import FitConfig, FitProblem
 from reconstruct.relight import pooled_psnr
 
 

@@ -1,4 +1,4 @@
-"""Inverse renderer (reconstruct.inverse_render), relighting evaluation (reconstruct.relight) and the
+"""Inverse renderer (reconstruct.basis_render, fit_start, inverse_render), relighting evaluation (reconstruct.relight) and the
 `displex invrender` command (train.invrender_command)."""
 from __future__ import annotations
 
@@ -9,29 +9,25 @@ import numpy as np
 import pytest
 import torch
 
+import reconstruct.basis_render as basis_render
 import reconstruct.inverse_render as inverse_render
 from capture_sim.errors import InputError
 from capture_sim.rig import Falloff, load_rig
 from capture_sim.render import render_olat
 from capture_sim.scene import save_scene
 from capture_sim.synth import synthesize_scene
-from reconstruct.inverse_render import (
-    EmissionPlan,
-    FitConfig,
+from reconstruct.basis_render import EmissionPlan, render_under_patterns, shading_geometry
+from reconstruct.fit_start import (
     InitialEstimate,
-    InverseRenderResult,
     cluster_albedo,
     fill_from_neighbours,
-    fit_inverse_render,
     grid_neighbours,
     initial_estimate,
     into_visible_hemisphere,
     least_squares_albedos,
     olat_least_squares,
-    render_under_patterns,
-    search_normals,
-    shading_geometry,
 )
+from reconstruct.inverse_render import FitConfig, InverseRenderResult, fit_inverse_render, search_normals
 from reconstruct.relight import (
     olat_emission,
     pooled_psnr,
@@ -131,7 +127,7 @@ def test_render_gradcheck_float64(tiny_rig):
 
 
 def test_lobe_sum_gradcheck_across_blocks(monkeypatch):
-    monkeypatch.setattr(inverse_render, "_LOBE_BLOCK_ROWS", 4)
+    monkeypatch.setattr(basis_render, "_LOBE_BLOCK_ROWS", 4)
     generator = torch.Generator().manual_seed(6)
     n_dot_h = torch.rand(9, 5, generator=generator, dtype=torch.float64)
     inputs = [
@@ -142,7 +138,7 @@ def test_lobe_sum_gradcheck_across_blocks(monkeypatch):
         torch.rand(2, generator=generator, dtype=torch.float64) * 0.9 + 0.01,  # alpha^2
         torch.rand(2, generator=generator, dtype=torch.float64) * 0.4 + 0.05,
     ]
-    assert torch.autograd.gradcheck(inverse_render._LobeSum.apply, [t.requires_grad_() for t in inputs])
+    assert torch.autograd.gradcheck(basis_render._LobeSum.apply, [t.requires_grad_() for t in inputs])
 
 
 def test_sharp_lobes_in_float32_match_the_simulator():
@@ -155,7 +151,7 @@ def test_sharp_lobes_in_float32_match_the_simulator():
     ones = torch.ones(200, 1, dtype=torch.float64)
     for dtype in (torch.float32, torch.float64):
         h = n_dot_h.to(dtype)[:, None]
-        lobe = inverse_render._LobeSum.apply(ones.to(dtype), h * h, (1 - h) * (1 + h), ones.to(dtype), (alpha * alpha).to(dtype)[None],
+        lobe = basis_render._LobeSum.apply(ones.to(dtype), h * h, (1 - h) * (1 + h), ones.to(dtype), (alpha * alpha).to(dtype)[None],
                                              torch.zeros(1, dtype=dtype))
         # D = a^2 / (pi t^2): the lobe sum is 1 / t^2 here; the truth at the n . h the dtype holds.
         expected = ggx_distribution(h[:, 0].double(), alpha) * math.pi / alpha**2
@@ -298,7 +294,7 @@ def test_cluster_albedo_separates_hues_and_is_seeded():
 
 
 def test_cluster_albedo_keeps_the_tightest_of_its_restarts():
-    from reconstruct.inverse_render import hue_saturation_features
+    from reconstruct.fit_start import hue_saturation_features
 
     generator = torch.Generator().manual_seed(9)
     albedo = torch.rand(400, 3, generator=generator) * 0.8 + 0.1  # no clear clusters: k-means++ starts matter

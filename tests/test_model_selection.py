@@ -15,7 +15,8 @@ from capture_sim.scene import Scene, save_scene
 from capture_sim.shapes import cast_camera_rays, make_shape
 from capture_sim.simulator import auto_exposure, sensor
 from capture_sim.synth import synthesize_scene
-from reconstruct.inverse_render import FitConfig, FitProblem, initial_estimate
+from reconstruct.fit_start import initial_estimate
+from reconstruct.inverse_render import FitConfig, FitProblem
 from reconstruct.model_selection import (
     Candidate,
     SelectionConfig,

@@ -38,8 +38,9 @@ from capture_sim.rig import DEFAULT_RIG, load_rig
 from capture_sim.scene import load_scene, rig_for_scene
 from capture_sim.simulator import auto_exposure, sensor, simulate
 from patterns.io import check_patterns_match_rig, load_patterns
+from reconstruct.basis_render import render_under_patterns
+from reconstruct.inverse_render import FitConfig, FitProblem, InverseRenderResult
 from reconstruct.metrics import angular_error_deg, normal_metrics
-from reconstruct.inverse_render import FitConfig, FitProblem, InverseRenderResult, render_under_patterns
 from reconstruct.model_selection import SelectionConfig, choose_light_model, light_spread, select_basis
 from reconstruct.relight import TEST_EVERY, VALIDATION_EVERY, olat_emission, relighting_metrics, split_lights
 from train.figures import for_display, image_grid, normal_panel, normal_to_rgb, save_figure
@@ -653,7 +654,8 @@ def _bench_speed(repeats, iterations, family, num_patterns, num_basis, seed) -> 
     from capture_sim.shapes import cast_camera_rays, make_shape
     from capture_sim.simulator import display_emission
     from patterns.families import make_patterns
-    from reconstruct.inverse_render import BasisModel, EmissionPlan, search_round, shading_geometry
+    from reconstruct.basis_render import EmissionPlan, shading_geometry
+    from reconstruct.inverse_render import BasisModel, search_round
     from train.bench import FULL_SIZE, machine_info, peak_rss_mb, reset_peak_rss
 
     peak_reset = reset_peak_rss()
