@@ -14,20 +14,16 @@ from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import load_rig
 from capture_sim.synth import write_scene_set
 from patterns.families import make_patterns
-from train.compare import (
+from train.compare import first_with_same_patterns, run_compare, run_demo
+from train.compare_config import (
     DEFAULT_EXPOSURE_MS,
     CompareConfig,
-    Method,
-    collect_methods,
     compare_config_from_dict,
-    external_methods,
-    first_with_same_patterns,
     load_compare_config,
     repository_root,
     rig_exposure_ms,
-    run_compare,
-    run_demo,
 )
+from train.compare_methods import Method, collect_methods, external_methods
 from train.report import CHARTS, aggregate_rows, pivot_cell, summary_tables
 
 SIZE = (24, 29)
@@ -90,7 +86,7 @@ def test_best_heuristic_is_never_a_method_that_reconstructed_nothing():
 
 
 def test_resolved_config_keeps_non_finite_values_in_nested_tables(scenes):
-    from train.compare import compare_config_to_dict
+    from train.compare_config import compare_config_to_dict
 
     config = tiny_config(scenes, learned={"steps": 2, "angle_cap_deg": float("inf")}, learned_at={"2": {"angle_cap_deg": float("inf")}},
                          solver={"restart_condition": float("inf")})
@@ -228,7 +224,7 @@ def test_a_heuristic_set_with_identical_patterns_is_skipped_with_the_reason(scen
     def refuse(name, *args, **kwargs):
         raise InputError(f"{name}: M = 2 on a 1 x 6 grid gives identical patterns")
 
-    monkeypatch.setattr("train.compare.make_patterns", refuse)
+    monkeypatch.setattr("train.compare_methods.make_patterns", refuse)
     config = tiny_config(scenes, learned_counts=[], include_olat_woodham=False)
     methods, skipped, _ = collect_methods(config, load_rig(), tmp_path, progress=False)
     assert not [m for m in methods if m.kind == "heuristic"]
@@ -255,7 +251,7 @@ def test_unreadable_external_file_stops_the_comparison_before_learning(scenes, t
     def no_learning(*args, **kwargs):
         raise AssertionError("learning ran before the external files were read")
 
-    monkeypatch.setattr("train.compare.learned_method", no_learning)
+    monkeypatch.setattr("train.compare_methods.learned_method", no_learning)
     with pytest.raises(InputError, match="bad.npy"):
         collect_methods(config, load_rig(), tmp_path / "patterns", progress=False)
 
@@ -377,7 +373,7 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     def no_learning(*args, **kwargs):
         raise AssertionError("a rerun must reuse the finished learning runs")
 
-    monkeypatch.setattr("train.compare.train_patterns", no_learning)
+    monkeypatch.setattr("train.compare_methods.train_patterns", no_learning)
     again = run_compare(config, tmp_path, progress=False)
     assert next(m for m in again["methods"] if m["kind"] == "learned")["cost_seconds"] == pytest.approx(learned["cost_seconds"])
     # A rerun without the specular-free check neither keeps nor links the earlier run's chart.
@@ -612,7 +608,7 @@ def test_specular_free_section_states_a_skipped_or_disabled_check():
 
 
 def test_rig_file_in_a_compare_config_is_relative_to_the_repository(tmp_path):
-    from train.compare import compare_config_from_dict
+    from train.compare_config import compare_config_from_dict
 
     config = compare_config_from_dict({"rig": "rigs/mine.toml"}, root=tmp_path)
     assert config.rig == str(tmp_path / "rigs" / "mine.toml")

@@ -336,7 +336,8 @@ def _search(args) -> None:
 
 
 def _compare(args) -> None:
-    from train.compare import load_compare_config, run_compare
+    from train.compare import run_compare
+    from train.compare_config import load_compare_config
 
     config = load_compare_config(args.config)
     results = run_compare(config, args.out if args.out is not None else Path(config.out))

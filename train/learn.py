@@ -329,7 +329,7 @@ def input_fingerprints(config) -> list[list]:
     """``file_fingerprints`` of every file a learning or search config (``TrainConfig`` or
     ``train.search.SearchConfig``) reads: its scene files, an init pattern file, and the rig's
     TOML file (a preset's too). A run made from files rewritten since is neither resumed nor
-    reused (``train.compare``)."""
+    reused (``train.compare_methods``)."""
     init = getattr(config, "init", "")
     init_file = [init] if names_pattern_file(init) else []
     scenes = (*config.scenes, *getattr(config, "val_scenes", ()))
