@@ -569,6 +569,11 @@ def pivot_cell(row: dict, key: str, digits: int) -> str:
     return _fmt(row[key], digits) + note + (f" (mean of {row['seeds']} seeds)" if row["seeds"] > 1 else "")
 
 
+CHART_TITLES = {"mae_vs_M": "MAE against M", "mae_vs_capture_time": "MAE against capture time", "mae_vs_compute_time": "Speed-accuracy (compute time)",
+                "mae_vs_noise": "MAE against noise level", "patterns": "The pattern sets", "specular_free": "Error with and without specular reflection"}
+"""Report headings of the charts (``CHARTS``)."""
+
+
 def write_report(results: dict, out_dir: Path, pattern_sets: dict, into: Path) -> Path:
     """Write ``report.md`` and the charts (``CHARTS``) for the output folder ``out_dir``.
 
@@ -586,10 +591,38 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict, into: Path) -
     out_dir, into = Path(out_dir), Path(into)
     summary = results.get("summary") or summary_tables(results)
     rows = summary["rows"]
-    default = results["default_noise"]
-    caption = _measurement_caption(results)
-    short = f"{len(results['test_scenes'])} test scenes, noise scale {default:g}, analytic PS (OLAT: Woodham); MAE averaged over scenes."
+    written = _write_charts(results, summary, pattern_sets, into)
+    lines = ["# Pattern comparison", "", _measurement_caption(results), ""]
+    lines += _accuracy_section(results, rows)
+    lines += _noise_section(results, rows)
+    lines += _advantage_section(summary, results["pattern_counts"])
+    lines += _more_captures_section(summary, results["default_noise"])
+    lines += specular_free_section(results, summary, rows)
+    lines += _seed_section(summary)
+    lines += _rerender_section(summary)
+    lines += _search_section(results, out_dir)
+    if results["skipped"]:
+        lines += ["## Skipped", ""] + [f"- {s['method']} at M = {s['M']}: {s['reason']}" for s in results["skipped"]] + [""]
+    lines += ["## Charts", ""]
+    for name, file_name in CHARTS.items():
+        if name in written:
+            lines += [f"### {CHART_TITLES[name]}", "", f"![{CHART_TITLES[name]}]({file_name})", ""]
+    timings = results["timings"]
+    lines += ["## Run", "",
+              f"Learning {timings.get('learning_seconds', 0):.0f} s, searches {timings.get('search_seconds', 0):.0f} s, "
+              f"evaluation {timings.get('evaluation_seconds', 0):.0f} s"
+              + (f", specular-free check {timings['specular_free_seconds']:.0f} s" if "specular_free_seconds" in timings else "")
+              + ". All numbers: `results.json`; resolved config: `config.json`; "
+              "pattern files: `patterns/`.", ""]
+    path = into / "report.md"
+    write_text(path, "\n".join(lines))
+    return path
 
+
+def _write_charts(results: dict, summary: dict, pattern_sets: dict, into: Path) -> set[str]:
+    """Write the report's charts into ``into``; returns the ``CHARTS`` keys written."""
+    rows = summary["rows"]
+    short = f"{len(results['test_scenes'])} test scenes, noise scale {results['default_noise']:g}, analytic PS (OLAT: Woodham); MAE averaged over scenes."
     save_figure(chart_mae_vs_patterns(rows, f"{short} Learned: mean over seeds, bars = std."), into / CHARTS["mae_vs_M"])
     save_figure(chart_mae_vs_cost(rows, "capture_seconds", f"capture time (s) = M x {results['exposure_ms']:g} ms x e / e_white", "Accuracy against capture time",
                                   short), into / CHARTS["mae_vs_capture_time"])
@@ -607,9 +640,13 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict, into: Path) -
     if entries:
         save_figure(chart_patterns(entries, "Each row: one pattern set, patterns left to right; superpixel grid as on the panel."), into / CHARTS["patterns"])
         written.add("patterns")
+    return written
 
-    lines = ["# Pattern comparison", "", caption, ""]
-    counts = results["pattern_counts"]
+
+def _accuracy_section(results: dict, rows: list[dict]) -> list[str]:
+    """Method x M tables of MAE, median, capture and compute time at the default noise, then one
+    table per M with every metric."""
+    default, counts = results["default_noise"], results["pattern_counts"]
     series_rows: dict = defaultdict(dict)
     labels = {}
     for row in rows:
@@ -624,8 +661,8 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict, into: Path) -
         body = [[labels[s][1], labels[s][0]] + [pivot_cell(series_rows[s][m], key, digits) if m in series_rows[s] else "-" for m in counts] for s in ordered]
         return _table(["method", "kind"] + [f"M = {m}" for m in counts], body)
 
-    lines += [f"## Accuracy and cost at noise scale {default:g}", "",
-              "Mean angular error (deg), method x M (lower is better):", "", pivot("mae", 2), ""]
+    lines = [f"## Accuracy and cost at noise scale {default:g}", "",
+             "Mean angular error (deg), method x M (lower is better):", "", pivot("mae", 2), ""]
     if reference is not None:
         lines += [f"Reference: {reference['label']}: MAE {reference['mae']:.2f} deg, median {reference['median']:.2f} deg, "
                   f"capture {reference['capture_seconds']:.1f} s, compute {reference['compute_seconds']:.2f} s per scene.", ""]
@@ -640,90 +677,91 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict, into: Path) -
                  _fmt(row["capture_seconds"], 2), _fmt(row["compute_seconds"], 3), _fmt(row["exposure"], 3), _fmt(row["cost_seconds"], 0)] for row in at_m]
         lines += [f"### M = {count}", "", _table(["method", "kind", "MAE (deg)", "median (deg)", "< 10 deg (%)", "invalid (%)", "capture (s)",
                                                  "compute (s/scene)", "exposure", "cost (s)"], body), ""]
+    return lines
 
-    lines += ["## MAE against noise level", "", "Mean angular error (deg) at each noise scale (x the rig's noise variances):", ""]
+
+def _noise_section(results: dict, rows: list[dict]) -> list[str]:
+    """MAE of every method at every noise scale."""
+    lines = ["## MAE against noise level", "", "Mean angular error (deg) at each noise scale (x the rig's noise variances):", ""]
     noises = results["noise_scales"]
     per_noise = {noise: {(row["series"], row["M"]): row for row in aggregate_rows(results, noise)} for noise in noises}
     body = []
     for row in sorted(rows, key=lambda r: (r["M"], _KIND_ORDER.get(r["kind"], 9), r["label"])):
         key = (row["series"], row["M"])
         body.append([row["label"], str(row["M"])] + [_fmt(per_noise[n][key]["mae"]) if key in per_noise[n] else "-" for n in noises])
-    lines += [_table(["method", "M"] + [f"noise {n:g}" for n in noises], body), ""]
+    return lines + [_table(["method", "M"] + [f"noise {n:g}" for n in noises], body), ""]
 
+
+def _advantage_section(summary: dict, counts: list[int]) -> list[str]:
+    """Learned MAE over the best heuristic's at every M and noise, and its trend with noise."""
     comparisons = summary["learned_vs_heuristic"]
-    if comparisons:
-        lines += ["## How the advantage of learned patterns changes with noise", "",
-                  "Ratio = learned MAE / best heuristic MAE (< 1: learned is better). Best heuristic: the family with the lowest MAE at "
-                  "its default parameters at that M and noise; 'tuned' also counts the NLopt-searched families.", ""]
-        body = [[str(c["M"]), f"{c['noise_scale']:g}", _fmt(c["learned_mae"]), f"{c['best_heuristic']} ({_fmt(c['best_heuristic_mae'])})",
-                 _fmt(c["ratio"], 3), f"{c['best_tuned']} ({_fmt(c['best_tuned_mae'])})", _fmt(c["ratio_tuned"], 3)] for c in comparisons]
-        lines += [_table(["M", "noise", "learned MAE", "best heuristic (MAE)", "ratio", "best tuned (MAE)", "ratio (tuned)"], body), ""]
-        for count in counts:
-            at_m = sorted((c for c in comparisons if c["M"] == count), key=lambda c: c["noise_scale"])
-            if len(at_m) > 1:
-                trend = " -> ".join(f"{c['ratio']:.3f} (noise {c['noise_scale']:g})" for c in at_m)
-                lines.append(f"- M = {count}: ratio {trend}; {noise_verdict(at_m[0]['ratio'], at_m[-1]['ratio'])} as the noise rises.")
-        lines.append("")
+    if not comparisons:
+        return []
+    lines = ["## How the advantage of learned patterns changes with noise", "",
+             "Ratio = learned MAE / best heuristic MAE (< 1: learned is better). Best heuristic: the family with the lowest MAE at "
+             "its default parameters at that M and noise; 'tuned' also counts the NLopt-searched families.", ""]
+    body = [[str(c["M"]), f"{c['noise_scale']:g}", _fmt(c["learned_mae"]), f"{c['best_heuristic']} ({_fmt(c['best_heuristic_mae'])})",
+             _fmt(c["ratio"], 3), f"{c['best_tuned']} ({_fmt(c['best_tuned_mae'])})", _fmt(c["ratio_tuned"], 3)] for c in comparisons]
+    lines += [_table(["M", "noise", "learned MAE", "best heuristic (MAE)", "ratio", "best tuned (MAE)", "ratio (tuned)"], body), ""]
+    for count in counts:
+        at_m = sorted((c for c in comparisons if c["M"] == count), key=lambda c: c["noise_scale"])
+        if len(at_m) > 1:
+            trend = " -> ".join(f"{c['ratio']:.3f} (noise {c['noise_scale']:g})" for c in at_m)
+            lines.append(f"- M = {count}: ratio {trend}; {noise_verdict(at_m[0]['ratio'], at_m[-1]['ratio'])} as the noise rises.")
+    return lines + [""]
 
+
+def _more_captures_section(summary: dict, default: float) -> list[str]:
+    """Learned patterns at M against the best heuristic at a larger M."""
     more_captures = summary.get("learned_vs_more_captures") or []
-    if more_captures:
-        lines += [f"## Fewer captures for the same accuracy? (noise scale {default:g})", "",
-                  "Learned patterns at M against the best heuristic family at a larger M (ratio <= 1: the learned set matches "
-                  "it with fewer captures):", ""]
-        body = [[str(c["M"]), _fmt(c["learned_mae"]), str(c["heuristic_M"]), f"{c['best_heuristic']} ({_fmt(c['best_heuristic_mae'])})",
-                 _fmt(c["ratio"], 3), "yes" if c["ratio"] <= 1 else "no"] for c in more_captures]
-        lines += [_table(["learned M", "learned MAE", "heuristic M", "best heuristic (MAE)", "ratio", "matched"], body), ""]
+    if not more_captures:
+        return []
+    lines = [f"## Fewer captures for the same accuracy? (noise scale {default:g})", "",
+             "Learned patterns at M against the best heuristic family at a larger M (ratio <= 1: the learned set matches "
+             "it with fewer captures):", ""]
+    body = [[str(c["M"]), _fmt(c["learned_mae"]), str(c["heuristic_M"]), f"{c['best_heuristic']} ({_fmt(c['best_heuristic_mae'])})",
+             _fmt(c["ratio"], 3), "yes" if c["ratio"] <= 1 else "no"] for c in more_captures]
+    return lines + [_table(["learned M", "learned MAE", "heuristic M", "best heuristic (MAE)", "ratio", "matched"], body), ""]
 
-    lines += specular_free_section(results, summary, rows)
 
-    if summary["seed_spread"]:
-        lines += ["## Seed spread of learned patterns", "", "Test MAE (deg) of patterns learned with different seeds (same config otherwise):", ""]
-        body = [[str(s["M"]), f"{s['noise_scale']:g}", ", ".join(map(str, s["seeds"])), _fmt(s["mean"]), _fmt(s["std"]), _fmt(s["min"]), _fmt(s["max"])]
-                for s in summary["seed_spread"]]
-        lines += [_table(["M", "noise", "seeds", "mean", "std", "min", "max"], body), ""]
+def _seed_section(summary: dict) -> list[str]:
+    """Test MAE spread of patterns learned with different seeds."""
+    if not summary["seed_spread"]:
+        return []
+    lines = ["## Seed spread of learned patterns", "", "Test MAE (deg) of patterns learned with different seeds (same config otherwise):", ""]
+    body = [[str(s["M"]), f"{s['noise_scale']:g}", ", ".join(map(str, s["seeds"])), _fmt(s["mean"]), _fmt(s["std"]), _fmt(s["min"]), _fmt(s["max"])]
+            for s in summary["seed_spread"]]
+    return lines + [_table(["M", "noise", "seeds", "mean", "std", "min", "max"], body), ""]
 
-    if summary.get("rerender"):
-        lines += ["## Learning through the renderer: normal-only against normal + re-rendering loss", "",
-                  "Test MAE (deg) of patterns learned with the normal loss only and with the re-rendering loss added "
-                  "(the analytic estimate rendered under the patterns against the simulated captures; same seed and steps). "
-                  "Ratio < 1: the re-rendering loss helps.", ""]
-        body = [[str(r["M"]), f"{r['noise_scale']:g}", str(r["seed"]), _fmt(r["weight"], 3) if r["weight"] is not None else "-",
-                 _fmt(r["normal_only_mae"]), _fmt(r["rerender_mae"]), _fmt(r["ratio"], 3)] for r in summary["rerender"]]
-        lines += [_table(["M", "noise", "seed", "weight", "normal only", "normal + re-rendering", "ratio"], body), ""]
 
+def _rerender_section(summary: dict) -> list[str]:
+    """Normal-only learning against learning with the re-rendering loss."""
+    if not summary.get("rerender"):
+        return []
+    lines = ["## Learning through the renderer: normal-only against normal + re-rendering loss", "",
+             "Test MAE (deg) of patterns learned with the normal loss only and with the re-rendering loss added "
+             "(the analytic estimate rendered under the patterns against the simulated captures; same seed and steps). "
+             "Ratio < 1: the re-rendering loss helps.", ""]
+    body = [[str(r["M"]), f"{r['noise_scale']:g}", str(r["seed"]), _fmt(r["weight"], 3) if r["weight"] is not None else "-",
+             _fmt(r["normal_only_mae"]), _fmt(r["rerender_mae"]), _fmt(r["ratio"], 3)] for r in summary["rerender"]]
+    return lines + [_table(["M", "noise", "seed", "weight", "normal only", "normal + re-rendering", "ratio"], body), ""]
+
+
+def _search_section(results: dict, out_dir: Path) -> list[str]:
+    """NLopt searches: their training objective from start to best, test MAE, cost and trace chart."""
     searches = [m for m in results["methods"] if m["kind"] == "search"]
-    if searches:
-        lines += ["## NLopt searches", "", "Training-scene objective (fixed pixel subset and noise draw), then test MAE at the default noise:", ""]
-        body = []
-        for method in searches:
-            info = method["info"]
-            test = _evaluation(method, default)
-            trace = Path(info["trace_png"])
-            try:
-                trace = trace.resolve().relative_to(out_dir.resolve())
-            except ValueError:
-                pass
-            body.append([method["label"], str(method["M"]), str(info["evaluations"]), _fmt(info["start_mae"]), _fmt(info["best_mae"]),
-                         _fmt(test["mae"]) if test else "-", _fmt(method["cost_seconds"], 0), info["stop_reason"], f"[trace]({trace.as_posix()})"])
-        lines += [_table(["search", "M", "evaluations", "start (train)", "best (train)", "test MAE", "cost (s)", "stop", "chart"], body), ""]
-
-    if results["skipped"]:
-        lines += ["## Skipped", ""] + [f"- {s['method']} at M = {s['M']}: {s['reason']}" for s in results["skipped"]] + [""]
-
-    timings = results["timings"]
-    lines += ["## Charts", ""]
-    chart_titles = {"mae_vs_M": "MAE against M", "mae_vs_capture_time": "MAE against capture time", "mae_vs_compute_time": "Speed-accuracy (compute time)",
-                    "mae_vs_noise": "MAE against noise level", "patterns": "The pattern sets",
-                    "specular_free": "Error with and without specular reflection"}
-    for name, file_name in CHARTS.items():
-        if name in written:
-            lines += [f"### {chart_titles[name]}", "", f"![{chart_titles[name]}]({file_name})", ""]
-    lines += ["## Run", "",
-              f"Learning {timings.get('learning_seconds', 0):.0f} s, searches {timings.get('search_seconds', 0):.0f} s, "
-              f"evaluation {timings.get('evaluation_seconds', 0):.0f} s"
-              + (f", specular-free check {timings['specular_free_seconds']:.0f} s" if "specular_free_seconds" in timings else "")
-              + ". All numbers: `results.json`; resolved config: `config.json`; "
-              "pattern files: `patterns/`.", ""]
-    path = into / "report.md"
-    write_text(path, "\n".join(lines))
-    return path
+    if not searches:
+        return []
+    lines = ["## NLopt searches", "", "Training-scene objective (fixed pixel subset and noise draw), then test MAE at the default noise:", ""]
+    body = []
+    for method in searches:
+        info = method["info"]
+        test = _evaluation(method, results["default_noise"])
+        trace = Path(info["trace_png"])
+        try:
+            trace = trace.resolve().relative_to(out_dir.resolve())
+        except ValueError:
+            pass
+        body.append([method["label"], str(method["M"]), str(info["evaluations"]), _fmt(info["start_mae"]), _fmt(info["best_mae"]),
+                     _fmt(test["mae"]) if test else "-", _fmt(method["cost_seconds"], 0), info["stop_reason"], f"[trace]({trace.as_posix()})"])
+    return lines + [_table(["search", "M", "evaluations", "start (train)", "best (train)", "test MAE", "cost (s)", "stop", "chart"], body), ""]
