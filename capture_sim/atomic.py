@@ -200,6 +200,7 @@ def exclusive_output(path: str | Path, command: str):
         lock_path.parent.mkdir(parents=True, exist_ok=True)
         handle = open(lock_path, "a")
     except OSError as err:
+        _remove_empty(created)
         raise InputError(f"cannot write {lock_path}: {err.strerror or err}") from None
     with handle:
         try:

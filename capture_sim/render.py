@@ -14,7 +14,7 @@ import torch
 
 from capture_sim.brdf import cook_torrance_specular
 from capture_sim.geometry import light_geometry, view_directions
-from capture_sim.rig import Falloff, check_falloff_values
+from capture_sim.rig import Falloff, checked_falloff
 
 
 def render_olat(
@@ -57,8 +57,7 @@ def render_olat(
         limit = torch.finfo(points.dtype).max
         return tuple(image.clamp(max=limit).to(points.dtype) for image in rendered)
     light_dirs, distance = light_geometry(points, lights)  # (N, K, 3), (N, K)
-    falloff_values = falloff(distance)
-    check_falloff_values(falloff_values, distance)  # DESIGN section 3: a fitted falloff can be negative or infinite
+    falloff_values = checked_falloff(falloff, distance).to(distance.dtype)  # DESIGN section 3: a fitted falloff can be negative or infinite
     view_dir = view_directions(points)[:, None, :]  # (N, 1, 3)
     n_dot_l = (normals[:, None, :] * light_dirs).sum(-1)
     irradiance = n_dot_l.clamp_min(0.0) * falloff_values  # (N, K)

@@ -116,21 +116,36 @@ class Falloff:
 
     def check(self, distance: torch.Tensor) -> None:
         """Raise ``InputError`` unless the falloff is positive and finite at every distance given."""
-        check_falloff_values(self(distance.detach()), distance, f"falloff {self.kind} (a={self.a:g}, b={self.b:g})")
+        checked_falloff(self, distance.detach())
+
+    def describe(self) -> str:
+        """``falloff inverse_square`` or ``falloff fitted (a=.., b=..)``, for messages."""
+        return f"falloff {self.kind}" + (f" (a={self.a:g}, b={self.b:g})" if self.kind == "fitted" else "")
 
 
-def check_falloff_values(values: torch.Tensor, distance: torch.Tensor, name: str = "falloff") -> None:
-    """Raise ``InputError`` unless every falloff value is positive and finite (DESIGN section 3: a
+def checked_falloff(falloff, distance: torch.Tensor) -> torch.Tensor:
+    """The falloff factors at ``distance``, refused unless positive and finite (DESIGN section 3: a
     fitted falloff can be negative or infinite at distances its fit did not cover).
 
     Args:
-        values: falloff factors at ``distance``, any shape.
-        distance: light distances in metres, the same shape.
-        name: what the falloff is, for the message.
+        falloff: callable mapping distances (metres) to falloff factors (tensor, array or number),
+            e.g. ``Falloff()``.
+        distance: light distances in metres, any shape.
+
+    Returns:
+        Factors of ``distance``'s shape, in its dtype or float32 if narrower (1 / d^2 of a few
+        millimetres overflows float16; callers narrow the checked values themselves).
+
+    Raises:
+        InputError: a factor is not positive and finite.
     """
+    wide = distance.to(torch.promote_types(distance.dtype, torch.float32))
+    values = torch.as_tensor(falloff(wide), dtype=wide.dtype).expand(wide.shape)
     if not bool(torch.isfinite(values).all()) or bool((values <= 0).any()):
+        name = falloff.describe() if isinstance(falloff, Falloff) else "falloff"
         lo, hi = float(distance.min()), float(distance.max())
         raise InputError(f"{name} is not positive and finite over light distances {lo:.3f}..{hi:.3f} m")
+    return values
 
 
 GAMMA_RANGE = (0.1, 10.0)
@@ -415,8 +430,8 @@ def panel_positions(
     u = (np.arange(cols) + 0.5) / cols * width - width / 2  # arc length along the panel, metres
     v = (np.arange(rows) + 0.5) / rows * height - height / 2  # y down: row 0 at the top (negative y)
     uu, vv = np.meshgrid(u, v)
-    # Beyond a half cylinder (arc angle above 90 degrees each side) the edges would fold back past
-    # the camera plane: no monitor is curved so, and such a number is a unit or typing mistake.
+    # Beyond a half cylinder (arc angle above 90 degrees each side) the edges would turn back
+    # towards the optical axis: no monitor is curved so, and such a number is a unit or typing mistake.
     if curvature_radius and not (math.isfinite(curvature_radius) and curvature_radius >= width / math.pi):
         raise InputError(f"panel curvature_radius must be at least the panel width / pi = {width / math.pi:.3g} m "
                          f"(0 or absent for a flat panel), got {curvature_radius!r}")

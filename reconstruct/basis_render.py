@@ -34,7 +34,7 @@ from torch.utils.checkpoint import checkpoint
 from capture_sim.brdf import MIN_ALPHA
 from capture_sim.errors import InputError, check_array
 from capture_sim.geometry import light_geometry, view_directions
-from capture_sim.rig import check_falloff_values
+from capture_sim.rig import checked_falloff
 
 RENDER_CHUNK_PIXELS = 4096
 """Pixels shaded at once by ``render_under_patterns``: a few (4096, K) temporaries of ~2.4 MB each."""
@@ -115,9 +115,8 @@ def shading_geometry(points: torch.Tensor, lights: torch.Tensor, falloff: Callab
             block = slice(start, start + chunk_pixels)
             light_dirs, distance = light_geometry(anchor[block], lights, min_distance)
             inverse_distance[block] = 1.0 / distance
-            values = torch.as_tensor(falloff(distance), dtype=points.dtype)
-            check_falloff_values(values, distance)
-            falloff_values[block] = values
+            # narrow dtypes keep the largest value they hold where a light is millimetres away
+            falloff_values[block] = checked_falloff(falloff, distance).clamp(max=torch.finfo(points.dtype).max)
             inverse_half_norm[block] = 1.0 / (light_dirs + view[block, None, :]).norm(dim=-1).clamp_min(_EPS)
     return ShadingGeometry(lights, anchor, view, inverse_distance, falloff_values, inverse_half_norm)
 

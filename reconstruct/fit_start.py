@@ -16,7 +16,7 @@ import torch
 
 from capture_sim.errors import InputError, check_array
 from capture_sim.geometry import light_geometry, view_directions
-from capture_sim.rig import check_falloff_values
+from capture_sim.rig import checked_falloff
 from reconstruct.basis_render import EmissionPlan, render_under_patterns
 from reconstruct.photometric_stereo import PSConfig, solve_ps
 
@@ -78,9 +78,7 @@ def olat_least_squares(captures, plan: EmissionPlan, points, lights, falloff, sh
         block = slice(start, start + chunk_pixels)
         observed = captures[:, block].double().permute(1, 0, 2)  # (B, M, 3)
         light_dirs, distance = light_geometry(points[block].double(), plan_lights, 1e-3)
-        values = torch.as_tensor(falloff(distance), dtype=torch.float64)
-        check_falloff_values(values, distance)
-        lighting = light_dirs * values[..., None]  # f l, (B, M, 3)
+        lighting = light_dirs * checked_falloff(falloff, distance)[..., None]  # f l, (B, M, 3)
         positive_gain = gain > 0
         ratio = torch.where(positive_gain, observed / gain.clamp_min(1e-30), torch.zeros((), dtype=torch.float64))  # y, (B, M, 3)
         grey = ratio.sum(-1) / positive_gain.sum(-1).clamp_min(1)

@@ -56,7 +56,7 @@ MAX_MIN_DISTANCE = 0.1
 """Metres: ``PSConfig.min_distance`` above this would flag points at ordinary rig distances."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class SolverSettings:
     """Settings that the analytic solver (``PSConfig``) and Woodham (``WoodhamConfig``) share: the
     shadow search, the damping and the per-pixel flags."""
@@ -122,7 +122,7 @@ class SolverSettings:
                 raise InputError(f"{name}: {key} must lie in [0, 1], got {value!r}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class PSConfig(SolverSettings):
     """Settings of the analytic photometric-stereo solver (``solve_ps``): the shared ones
     (``SolverSettings``) and the albedo/normal alternation's."""

@@ -46,7 +46,7 @@ from reconstruct.pixel_solve import Moments, albedo_step, damped_solve, relative
 from reconstruct.shadow_search import restarted_search
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class WoodhamConfig(SolverSettings):
     """Settings of the Woodham least-squares solver (``solve_woodham``): the shared ones
     (``SolverSettings``; the damping applies to each channel's 3x3 system) and the OLAT shadow cut."""

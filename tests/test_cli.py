@@ -1,4 +1,5 @@
 """The command line end to end on tiny scenes: outputs, exit codes, one-line errors."""
+import argparse
 import json
 import os
 from pathlib import Path
@@ -331,7 +332,7 @@ def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeyp
         # TOML booleans are not numbers (false == 0 used to switch quantisation off).
         "bits_bool": ("bit_depth = 12", "bit_depth = false"),
         "gamma_bool": ("gamma = 2.2", "gamma = true"),
-        # A radius below width / pi folds the panel's edges back past the camera plane.
+        # A radius below width / pi bends the panel beyond a half cylinder.
         "curvature": ("curvature_radius = 1.8", "curvature_radius = 0.3"),
         "curvature_negative": ("curvature_radius = 1.8", "curvature_radius = -1.8"),
         "curvature_nan": ("curvature_radius = 1.8", "curvature_radius = nan"),
@@ -404,6 +405,10 @@ def test_ctrl_c_in_search_points_to_the_partial_trace(tmp_path, scene_file, caps
     assert run(command[:-1] + [str(odd)]) == 130
     err = capsys.readouterr().err.strip()
     assert "no evaluation was made yet; an earlier run's" in err and err.endswith("s\\nt.trace.partial.csv"), err
+    # Interrupted before the search looked at the partial trace (while importing): an earlier run's too.
+    from train.cli import _search_interrupted
+
+    assert _search_interrupted(argparse.Namespace(out=odd)).startswith("no evaluation was made yet; an earlier run's")
 
 
 def test_patterns_make_and_export_round_trip(tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -276,6 +277,16 @@ def test_olat_least_squares_handles_a_pure_red_object_and_bad_inputs_are_refused
     for bad_emission, bad_index in ((torch.zeros_like(emission), index), (emission, index.double()), (emission, torch.cat([index[:1], index[:-1]]))):
         with pytest.raises(InputError):
             fit_inverse_render(captures, bad_emission.float(), points.float(), scene.lights.float(), Falloff(), bad_index, 24, 30)
+    with pytest.raises(InputError, match=re.escape("falloff fitted (a=-5.458, b=14.7449) is not positive")):
+        olat_least_squares(stack[lights] * exposure, EmissionPlan(emission), points, scene.lights, Falloff("fitted", a=-5.4580, b=14.7449))
+
+
+def test_shading_geometry_of_half_precision_points_next_to_a_light_is_finite():
+    """1 / d^2 at 2 mm overflows float16: the factor is computed wider and kept at float16's largest."""
+    lights = torch.tensor([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]])
+    points = torch.tensor([[0.0, 0.0, 0.002], [0.0, 0.0, 0.5]], dtype=torch.float16)
+    geometry = shading_geometry(points, lights.half(), Falloff())
+    assert torch.isfinite(geometry.falloff).all() and float(geometry.falloff[0, 0]) == torch.finfo(torch.float16).max
 
 
 def test_cluster_albedo_separates_hues_and_is_seeded():
@@ -495,7 +506,7 @@ def test_fit_bad_input_raises(small_scene):
     for position, bad in ((0, captures[:, :, :2]), (1, emission[:-1]), (2, pixels.points[:-1]), (5, pixels.transport.pixel_index + 10**6), (4, pole)):
         wrong = list(arguments)
         wrong[position] = bad
-        with pytest.raises(InputError, match="falloff is not positive" if position == 4 else None):
+        with pytest.raises(InputError, match="is not positive and finite" if position == 4 else None):
             fit_inverse_render(*wrong, FitConfig(iterations=1))
 
 

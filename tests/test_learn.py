@@ -340,3 +340,7 @@ def test_a_second_run_on_the_same_output_is_refused(tmp_path, scene_dirs):
     with pytest.raises(InputError, match="missing.npz"):
         train_patterns(dataclasses.replace(config, init=str(tmp_path / "missing.npz")), nested, progress=False)
     assert not (tmp_path / "new").exists()
+    with pytest.raises(InputError, match="File name too long"):  # the output's name is legal, its lock's is not
+        with exclusive_output(tmp_path / "new" / "folder" / ("a" * 247 + ".npz"), "training run"):
+            pass
+    assert not (tmp_path / "new").exists()

@@ -300,6 +300,9 @@ def test_solver_configs_refuse_bad_settings(config_class, settings, message):
     classes = {"PSConfig": PSConfig, "WoodhamConfig": WoodhamConfig, "UnrolledPSConfig": UnrolledPSConfig}
     with pytest.raises(InputError, match=re.escape(message)):
         classes[config_class](**settings)
+    if config_class != "UnrolledPSConfig":  # keyword-only: a positional value cannot land on another field
+        with pytest.raises(TypeError):
+            classes[config_class](1e-9, 20)
 
 
 def test_complex_inputs_are_refused():

@@ -1,4 +1,5 @@
 import math
+import re
 
 import numpy as np
 import pytest
@@ -192,8 +193,14 @@ def test_review_fixes_for_sensor_rig_and_files(tiny_rig, tmp_path):
         simulate(torch.as_tensor(patterns), transport, tiny_rig, exposure="Auto")
     points = torch.tensor([[0.0, 0.0, 0.5]])
     lights = torch.tensor([[0.1, 0.0, 0.2]])  # 0.32 m away
-    with pytest.raises(InputError):  # the reference rig's fitted falloff is negative below 0.608 m
-        render_olat(points, torch.tensor([[0.0, 0.0, -1.0]]), lights, torch.ones(1, 1), torch.ones(1, 3), torch.zeros(1), torch.ones(1), Falloff("fitted", -5.4580, 14.7449))
+    shading = (points, torch.tensor([[0.0, 0.0, -1.0]]), lights, torch.ones(1, 1), torch.ones(1, 3), torch.zeros(1), torch.ones(1))
+    # the reference rig's fitted falloff is negative below 0.608 m; the message names it
+    with pytest.raises(InputError, match=re.escape("falloff fitted (a=-5.458, b=14.7449) is not positive")):
+        render_olat(*shading, Falloff("fitted", -5.4580, 14.7449))
+    # any falloff callable: one returning a number or a numpy array renders as the tensor one does
+    reference = render_olat(*shading, lambda d: 1.0 / d**2)[0]
+    for falloff in (lambda d: float(1.0 / d.item() ** 2), lambda d: (1.0 / d**2).numpy()):
+        assert torch.allclose(render_olat(*shading, falloff)[0], reference)
     umask = os.umask(0o022)
     try:
         write_text(tmp_path / "a.txt", "x")

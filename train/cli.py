@@ -299,8 +299,9 @@ def _search_interrupted(args) -> str:
     partial = partial_trace_path(args.out)
     if not partial.exists():
         return "no evaluation was made yet"
-    if _file_stamp(partial) == getattr(args, "earlier_partial", None):
-        # the search removes an earlier interrupted run's partial trace only once its inputs are checked
+    # The search removes an earlier interrupted run's partial trace only once its inputs are
+    # checked; interrupted before ``_search`` took the file's stamp, no evaluation was made.
+    if not hasattr(args, "earlier_partial") or _file_stamp(partial) == args.earlier_partial:
         return f"no evaluation was made yet; an earlier run's evaluations are still in {partial}"
     return f"the evaluations made so far are in {partial}"
 
