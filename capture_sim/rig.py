@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from capture_sim.errors import InputError, check_array, is_whole_number
+from capture_sim.errors import InputError, check_array, is_whole_number, one_line
 from capture_sim.toml_io import load_toml
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -69,6 +69,10 @@ class Camera:
         return Camera(K_cam=_as_nested(k), height=height, width=width, exposure_ms=self.exposure_ms)
 
 
+MAX_NOISE_VARIANCE = 1e12
+"""Largest shot gain and squared read noise (full scale 1): a noise std of 1e6 full scales."""
+
+
 @dataclass(frozen=True)
 class NoiseModel:
     """Poisson-Gaussian sensor noise: variance = shot * signal + read_std ** 2 (signal in [0, 1])."""
@@ -80,8 +84,12 @@ class NoiseModel:
 
     def __post_init__(self):
         values = (self.shot, self.read_std)
-        if not all(isinstance(v, (int, float)) and math.isfinite(v) and v >= 0 for v in values):
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0 for v in values):
             raise InputError(f"noise shot and read_std must be finite numbers >= 0, got {self.shot!r}, {self.read_std!r}")
+        # Far beyond pure noise (std 1 = full scale), and what float32 variances hold with room to spare.
+        if self.shot > MAX_NOISE_VARIANCE or self.read_std > math.sqrt(MAX_NOISE_VARIANCE):
+            raise InputError(f"noise shot must be at most {MAX_NOISE_VARIANCE:g} and read_std at most {math.sqrt(MAX_NOISE_VARIANCE):g} "
+                             f"(full-scale units), got {self.shot!r}, {self.read_std!r}")
 
     def scaled(self, factor: float) -> "NoiseModel":
         """Noise with both variance terms multiplied by ``factor`` (0 gives a noise-free sensor)."""
@@ -318,24 +326,24 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
     keys are errors."""
     _check_rig_keys(config, default_name)
     try:
-        cam = config["camera"]
+        cam = {key: _number(f"camera {key}", config["camera"][key]) for key in ("fx", "fy", "cx", "cy")}
         camera = Camera(
             K_cam=_as_nested(np.array([[cam["fx"], 0.0, cam["cx"]], [0.0, cam["fy"], cam["cy"]], [0.0, 0.0, 1.0]])),
-            height=_whole_number("camera height", cam["height"]),
-            width=_whole_number("camera width", cam["width"]),
-            exposure_ms=cam.get("exposure_ms"),
+            height=_whole_number("camera height", config["camera"]["height"]),
+            width=_whole_number("camera width", config["camera"]["width"]),
+            exposure_ms=config["camera"].get("exposure_ms"),
         )
         display = config["display"]
         if "light_positions" in display:
-            positions = np.asarray(display["light_positions"], dtype=np.float64)
+            positions = _numbers("display light_positions", display["light_positions"])
         else:
             positions = panel_positions(**display["panel"])
         exposure = config.get("exposure", "auto")
         bit_depth = config.get("bit_depth", 12)
         return Rig(
-            name=config.get("name", default_name),
+            name=_text("name", config.get("name", default_name)),
             light_positions=positions,
-            backlight=np.asarray(display.get("backlight", 0.0), dtype=np.float64),
+            backlight=_numbers("display backlight", display.get("backlight", 0.0)),
             camera=camera,
             gamma=_number("display gamma", display.get("gamma", 2.2)),
             scale=_number("display scale", display.get("scale", 1.0)),
@@ -358,11 +366,16 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
         raise InputError(f"rig {default_name}: {err or type(err).__name__}") from None
 
 
+MAX_PANEL_SIDE = 65535
+"""Largest display side in pixels (16K panels have 15360; a frame that size is already 12 GB)."""
+
+
 def panel_size(panel_pixels, name: str = "panel_pixels") -> tuple[int, int]:
-    """(height, width) of a display in pixels; ``InputError`` unless two positive whole numbers."""
+    """(height, width) of a display in pixels; ``InputError`` unless two whole numbers in
+    1..MAX_PANEL_SIDE."""
     values = list(panel_pixels) if isinstance(panel_pixels, (list, tuple, np.ndarray)) else []
-    if len(values) != 2 or not all(is_whole_number(v, 1) for v in values):
-        raise InputError(f"{name} must be two positive whole numbers (height, width), got {panel_pixels!r}")
+    if len(values) != 2 or not all(is_whole_number(v, 1) and v <= MAX_PANEL_SIDE for v in values):
+        raise InputError(f"{name} must be two whole numbers in 1..{MAX_PANEL_SIDE} (height, width), got {panel_pixels!r}")
     return int(values[0]), int(values[1])
 
 
@@ -379,6 +392,21 @@ def _number(name: str, value, expected: str = "a number") -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise InputError(f"{name} must be {expected}, got {value!r}")
     return float(value)
+
+
+def _numbers(name: str, value) -> np.ndarray:
+    """A number or nested list of numbers as a float64 array (TOML strings and booleans refused:
+    numpy would convert "1.5" and true silently)."""
+    array = np.asarray(value)
+    if array.dtype.kind not in "iuf":
+        raise InputError(f"{name} must be numbers, got {one_line(repr(value))[:80]}")
+    return array.astype(np.float64)
+
+
+def _text(name: str, value) -> str:
+    if not (isinstance(value, str) and value.strip()):
+        raise InputError(f"{name} must be non-empty text, got {value!r}")
+    return value
 
 
 def _whole_number(name: str, value) -> int:

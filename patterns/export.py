@@ -275,26 +275,27 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
     # The count first: a forged num_patterns of 10^12 must not build a list of that length.
     if len(pattern_frames) != manifest["num_patterns"] or [f["index"] for f in pattern_frames] != list(range(len(pattern_frames))):
         raise InputError(f"{frames_dir}: manifest lists pattern frames {[f['index'] for f in pattern_frames]}, expected 0..{manifest['num_patterns'] - 1}")
+    # The listed values first: their shape must restate the grid before a frame is averaged over it.
+    listed = np.asarray(manifest["patterns"])
+    if listed.dtype.kind not in "iuf" or listed.shape != (len(pattern_frames), rows, cols, 3) or not np.isfinite(listed).all():
+        raise InputError(f"{frames_dir}: manifest patterns are not a finite {len(pattern_frames)} x {rows} x {cols} x 3 array of numbers")
     row_bounds = superpixel_boundaries(rows, height)
     col_bounds = superpixel_boundaries(cols, width)
     levels = 2**bit_depth - 1
-    recovered = np.empty((len(pattern_frames), rows, cols, 3), dtype=np.float64)
-    for m, frame in enumerate(pattern_frames):
+    recovered = []
+    for frame in pattern_frames:
         image = read_png(frames_dir / frame["file"])
         if image.shape != (height, width, 3) or image.dtype.itemsize * 8 != bit_depth:
             raise InputError(
                 f"{frames_dir}: frame {frame['file']} is {image.shape} at {image.dtype.itemsize * 8} bits, "
                 f"manifest says ({height}, {width}, 3) at {bit_depth} bits"
             )
-        recovered[m] = _block_means(image, row_bounds, col_bounds) / levels
+        recovered.append(_block_means(image, row_bounds, col_bounds) / levels)  # the grid is checked against a real frame first
+    recovered = np.stack(recovered)
     if manifest["columns_mirrored"]:
         recovered = recovered[:, :, ::-1]
     patterns = validate_patterns(recovered, f"{frames_dir}: recovered patterns")
-    try:
-        listed = np.asarray(manifest["patterns"], dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(f"{frames_dir}: manifest patterns are not an M x R x C x 3 array of numbers") from None
-    if listed.shape != patterns.shape or not np.isfinite(listed).all() or np.abs(listed - patterns).max() > 0.5 / levels + 1e-6:
+    if np.abs(listed - patterns).max() > 0.5 / levels + 1e-6:
         raise InputError(f"{frames_dir}: the frames do not show the pattern values listed in the manifest")
     if rig is not None:
         check_patterns_match_rig(patterns, rig.rows, rig.cols)
@@ -315,15 +316,17 @@ def _read_manifest(frames_dir: Path) -> dict:
         raise InputError(f"{path}: manifest is missing {', '.join(missing)}")
     if manifest["format"] != FORMAT:
         raise InputError(f"{path}: unknown manifest format {manifest['format']!r} (expected {FORMAT})")
-    panel = manifest["panel_pixels"]
-    sizes = [manifest["rows"], manifest["cols"], manifest["num_patterns"], *(panel if isinstance(panel, list) else [None])]
+    sizes = [manifest["rows"], manifest["cols"], manifest["num_patterns"]]
     whole = all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in sizes)
-    if len(sizes) != 5 or not whole or not isinstance(manifest["frames"], list) or not isinstance(manifest["columns_mirrored"], bool):
-        raise InputError(f"{path}: manifest rows, cols, num_patterns, panel_pixels, columns_mirrored or frames are malformed")
+    if not whole or not isinstance(manifest["frames"], list) or not isinstance(manifest["columns_mirrored"], bool):
+        raise InputError(f"{path}: manifest rows, cols, num_patterns, columns_mirrored or frames are malformed")
+    panel = panel_size(manifest["panel_pixels"], f"{path}: manifest panel_pixels")
+    if manifest["rows"] > panel[0] or manifest["cols"] > panel[1]:
+        raise InputError(f"{path}: manifest grid {manifest['rows']} x {manifest['cols']} has more superpixels than the panel's {panel[0]} x {panel[1]} pixels")
     for frame in manifest["frames"]:
         if not isinstance(frame, dict) or not isinstance(frame.get("file"), str) or Path(frame["file"]).name != frame["file"]:
             raise InputError(f"{path}: every manifest frame needs a plain file name, got {frame!r}")
-        if frame.get("kind") == "pattern" and not isinstance(frame.get("index"), int):
+        if frame.get("kind") == "pattern" and (not isinstance(frame.get("index"), int) or isinstance(frame["index"], bool)):
             raise InputError(f"{path}: pattern frame {frame['file']} has no integer index")
     # Fields that restate one another must agree: an edited manifest is not silently half-applied.
     files = [frame["file"] for frame in manifest["frames"]]

@@ -341,6 +341,15 @@ def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeyp
         "noise_typo": ("read_std = 5e-4", "read_std = 5e-4\nread_noise = 1e-3"),
         "fitted_without_ab": ('kind = "inverse_square"', 'kind = "fitted"\na = 1.0'),
         "square_with_ab": ('kind = "inverse_square"', 'kind = "inverse_square"\nb = 14.7'),
+        # Text and booleans where numbers belong (numpy converted them), and noise far beyond full
+        # scale (NaN captures, or an overflow traceback).
+        "fx_text": ("fx = 1141.8", 'fx = "1141.8"'),
+        "shot_bool": ("shot = 1e-4", "shot = true"),
+        "backlight_bool": ("backlight = 0.025", "backlight = true"),
+        "name_number": ('name = "panel-55in-4x8"', "name = 5"),
+        "shot_huge": ("shot = 1e-4", "shot = 1e308"),
+        "read_huge": ("read_std = 5e-4", "read_std = 1e308"),
+        "panel_pixels_huge": ("panel_pixels = [2160, 3840]", "panel_pixels = [1000000000, 3840]"),
     }.items():
         assert old in text, (name, old)
         (tmp_path / f"{name}.toml").write_text(text.replace(old, new))

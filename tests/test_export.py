@@ -173,7 +173,23 @@ def test_import_refuses_tampered_or_incomplete_folders(tmp_path, small_rig):
         import_frames(tmp_path)
     manifest["patterns"][0][0][0] = [float("nan")] * 3  # NaN compares false with every tolerance
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
-    with pytest.raises(InputError, match="do not show"):
+    with pytest.raises(InputError, match="not a finite 2 x 9 x 16 x 3 array"):
+        import_frames(tmp_path)
+    manifest["patterns"][0][0][0] = ["1", "1", "1"]  # numpy would read text as numbers
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(InputError, match="not a finite 2 x 9 x 16 x 3 array"):
+        import_frames(tmp_path)
+    # A forged grid is refused before anything that size is built (it used to hang or crash).
+    for rows, panel in ((10**9, [10**9, 160]), (10**30, [10**30, 160]), (91, [90, 160])):
+        forged = {**manifest, "rows": rows, "panel_pixels": panel}
+        forged.pop("row_boundaries", None)
+        (tmp_path / "manifest.json").write_text(json.dumps(forged))
+        with pytest.raises(InputError, match="panel_pixels|more superpixels"):
+            import_frames(tmp_path)
+    forged = json.loads(json.dumps(manifest))
+    next(frame for frame in forged["frames"] if frame.get("kind") == "pattern")["index"] = False
+    (tmp_path / "manifest.json").write_text(json.dumps(forged))
+    with pytest.raises(InputError, match="no integer index"):
         import_frames(tmp_path)
     # Fields that restate one another must agree.
     for key, change, message in (("capture_order", lambda order: order[::-1], "capture_order"),

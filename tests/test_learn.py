@@ -86,6 +86,15 @@ def test_learning_lowers_training_loss(scene_dirs):
     assert losses[-1] < losses[0]
 
 
+def test_capped_loss_with_a_cap_beyond_float32_is_the_angular_loss():
+    """A cap of 180 degrees or more caps nothing; 1e300 used to overflow float32."""
+    estimate = torch.nn.functional.normalize(torch.randn(6, 3), dim=1)
+    truth = torch.nn.functional.normalize(torch.randn(6, 3), dim=1)
+    angular = normal_loss(estimate, truth, "angular")
+    for cap in (180.0, 1e300, math.inf):
+        assert torch.equal(normal_loss(estimate, truth, "capped_angular", cap), angular)
+
+
 def test_normal_loss_is_finite_at_exact_match():
     normal = torch.tensor([[0.0, 0.0, -1.0]], requires_grad=True)
     loss = normal_loss(normal, normal.detach().clone(), "angular")

@@ -186,6 +186,7 @@ def _evaluate_in_workers(jobs: list, workers: int, on_result: Callable[[tuple, l
     """
     context = multiprocessing.get_context("fork")
     processes, pending = [], {}
+    workers = min(workers, len(jobs))  # more would idle (and a huge setting would loop for ever)
     try:
         for index in range(workers):
             share = jobs[index::workers]

@@ -186,8 +186,8 @@ def normal_loss(estimate: torch.Tensor, truth: torch.Tensor, kind: str, angle_ca
         return (1.0 - cosine).mean()
     # acos has an infinite slope at 1: clamp just inside so that exact pixels give finite gradients.
     angle = torch.acos(cosine.clamp(-1.0 + 1e-6, 1.0 - 1e-6))
-    if kind == "capped_angular":
-        angle = angle.clamp_max(math.radians(angle_cap_deg))
+    if kind == "capped_angular":  # a cap of 180 degrees or more caps nothing (and may not fit float32)
+        angle = angle.clamp_max(math.radians(min(angle_cap_deg, 180.0)))
     return angle.mean()
 
 
