@@ -69,6 +69,19 @@ class Camera:
         return Camera(K_cam=_as_nested(k), height=height, width=width, exposure_ms=self.exposure_ms)
 
 
+MAX_LIGHT_DISTANCE_M = 1e6
+"""Metres: superpixels farther from the camera are a unit mistake (and their squared distances
+leave float32's comfortable range)."""
+
+
+def check_light_positions(name: str, positions) -> None:
+    """Raise ``InputError`` unless ``positions`` is an (R, C, 3) array of finite coordinates within
+    ``MAX_LIGHT_DISTANCE_M`` of the camera."""
+    check_array(name, positions, ("R", "C", 3))
+    if float(np.abs(np.asarray(positions, dtype=np.float64)).max(initial=0.0)) > MAX_LIGHT_DISTANCE_M:
+        raise InputError(f"{name} must lie within {MAX_LIGHT_DISTANCE_M:g} m of the camera (metres, camera frame)")
+
+
 MAX_NOISE_VARIANCE = 1e12
 """Largest shot gain and squared read noise (full scale 1): a noise std of 1e6 full scales."""
 
@@ -196,7 +209,7 @@ class Rig:
 
     def __post_init__(self):
         positions = np.asarray(self.light_positions, dtype=np.float64)
-        check_array(f"rig {self.name}: light_positions", positions, ("R", "C", 3))
+        check_light_positions(f"rig {self.name}: light_positions", positions)
         backlight = np.asarray(self.backlight, dtype=np.float64)
         if backlight.ndim == 0:
             backlight = np.full(positions.shape[:2], float(backlight))
