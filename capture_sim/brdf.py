@@ -54,6 +54,10 @@ def smith_schlick_ggx(n_dot_l: torch.Tensor, n_dot_v: torch.Tensor, alpha: torch
     return (n_dot_l / (n_dot_l * (1.0 - k) + k)) * (n_dot_v / (n_dot_v * (1.0 - k) + k))
 
 
+FRESNEL_KINDS = ("constant", "schlick")
+"""F = 1, or Schlick's approximation of a dielectric (F0 = 0.04)."""
+
+
 def cook_torrance_specular(
     normal: torch.Tensor,
     light_dir: torch.Tensor,
@@ -82,7 +86,7 @@ def cook_torrance_specular(
     if fresnel == "schlick":
         v_dot_h = (view_dir * half).sum(-1).clamp(0.0, 1.0)
         lobe = lobe * (0.04 + 0.96 * (1.0 - v_dot_h) ** 5)
-    elif fresnel != "constant":
-        raise InputError(f"fresnel must be 'constant' or 'schlick', got {fresnel!r}")
+    elif fresnel not in FRESNEL_KINDS:
+        raise InputError(f"fresnel must be one of {', '.join(FRESNEL_KINDS)}, got {fresnel!r}")
     visible = (n_dot_l > 0) & (n_dot_v > 0)
     return torch.where(visible, lobe, torch.zeros_like(lobe))

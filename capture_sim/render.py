@@ -12,7 +12,8 @@ import math
 
 import torch
 
-from capture_sim.brdf import cook_torrance_specular
+from capture_sim.brdf import FRESNEL_KINDS, cook_torrance_specular
+from capture_sim.errors import InputError, check_array
 from capture_sim.geometry import light_geometry, view_directions
 from capture_sim.rig import Falloff, checked_falloff
 
@@ -48,6 +49,7 @@ def render_olat(
         (float16 and bfloat16 inputs are rendered in float32, whose small denominators they cannot
         hold, and the result is clamped to their range).
     """
+    _check_inputs(points, normals, lights, weights, diffuse_albedo, specular_albedo, roughness, visibility, fresnel)
     if points.dtype in (torch.float16, torch.bfloat16):
         def wide(value):
             return value.float() if isinstance(value, torch.Tensor) and value.is_floating_point() else value
@@ -75,3 +77,21 @@ def render_olat(
         lobe = lobe + (weights[:, j] * specular_albedo[:, j])[:, None] * lobe_j
     specular = (lobe * irradiance)[..., None].expand(-1, -1, 3)
     return diffuse.permute(1, 0, 2), specular.permute(1, 0, 2)
+
+
+def _check_inputs(points, normals, lights, weights, diffuse_albedo, specular_albedo, roughness, visibility, fresnel) -> None:
+    """``InputError`` for the shapes and ranges ``render_olat`` documents (NaN anywhere included)."""
+    check_array("points", points, ("N", 3))
+    count = points.shape[0]
+    check_array("normals", normals, (count, 3))
+    check_array("lights", lights, ("K", 3))
+    check_array("weights", weights, (count, "J"), value_range=(0.0, math.inf))
+    bases = weights.shape[1]
+    per_point = (count, bases)
+    check_array("diffuse_albedo", diffuse_albedo, (bases, 3) if diffuse_albedo.dim() == 2 else (*per_point, 3), value_range=(0.0, math.inf))
+    check_array("specular_albedo", specular_albedo, (bases,) if specular_albedo.dim() == 1 else per_point, value_range=(0.0, math.inf))
+    check_array("roughness", roughness, (bases,) if roughness.dim() == 1 else per_point, value_range=(0.0, 1.0))
+    if visibility is not None:
+        check_array("visibility", visibility, (count, lights.shape[0]), value_range=(0.0, 1.0))
+    if fresnel not in FRESNEL_KINDS:
+        raise InputError(f"fresnel must be one of {', '.join(FRESNEL_KINDS)}, got {fresnel!r}")

@@ -46,6 +46,10 @@ DEFAULT_SHARPNESS = 1e6
 ~2e-5 cells from an edge. Oblique default splits pass within 0.0032 cells of a centre on the
 reference 9 x 16 grid (M = 9, 10), where a slope of 40 left values like 0.18 and 0.82."""
 
+MAX_SHARPNESS = 1e12
+"""Largest edge sharpness per cell: already a step at float32 resolution; far beyond, sharpness x
+cells overflows float32 and the sigmoid gives NaN."""
+
 PRESETS = ("default", "ddps")
 
 PRESET_LEVELS = {"default": (0.0, 1.0), "ddps": (0.1, 0.9)}
@@ -157,15 +161,16 @@ class Family:
             raise InputError(f"{self.name}: parameter values must be a floating-point torch tensor")
         low, high, names = self._bounds(int(num_patterns), int(rows), int(cols))
         check_array(f"{self.name} parameter values", values, (len(names),))
-        detached = values.detach().cpu().double().numpy()
-        outside = np.flatnonzero((detached < low) | (detached > high))
-        if outside.size:
+        detached = values.detach().cpu()
+        # The bounds rounded as the values are: a float32 vector at a float64 bound is inside.
+        outside = torch.nonzero((detached < torch.as_tensor(low, dtype=detached.dtype)) | (detached > torch.as_tensor(high, dtype=detached.dtype)))
+        if outside.numel():
             i = int(outside[0])
             raise InputError(
-                f"{self.name}: parameter {names[i]} = {detached[i]:.6g} is outside its bounds [{low[i]:g}, {high[i]:g}]"
+                f"{self.name}: parameter {names[i]} = {float(detached[i]):.6g} is outside its bounds [{low[i]:g}, {high[i]:g}]"
             )
-        if not sharpness > 0 or not math.isfinite(sharpness):
-            raise InputError(f"{self.name}: sharpness must be positive and finite, got {sharpness}")
+        if not 0 < sharpness <= MAX_SHARPNESS:
+            raise InputError(f"{self.name}: sharpness must be positive and at most {MAX_SHARPNESS:g} per cell, got {sharpness}")
         return self._generate(values, int(num_patterns), int(rows), int(cols), float(sharpness))
 
     @functools.lru_cache(maxsize=32)

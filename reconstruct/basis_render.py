@@ -363,7 +363,10 @@ def render_under_patterns(
     plan = EmissionPlan(emission.to(dtype))
     plan_lights = lights.to(dtype)[plan.light_index]
     far_geometry = shading_geometry(points.to(dtype), plan_lights, falloff, far_field=True) if far_field else None
-    unit_normals = normals / normals.norm(dim=-1, keepdim=True).clamp_min(_EPS)
+    # Long vectors are scaled to components of at most 1 first (the norm of a float32 vector of
+    # length 1e20 overflows); shorter ones are left exactly as they are.
+    scaled = normals / normals.detach().abs().amax(-1, keepdim=True).clamp_min(1.0)
+    unit_normals = scaled / scaled.norm(dim=-1, keepdim=True).clamp_min(_EPS)
 
     def render_chunk(chunk_normals, chunk_points, chunk_weights, *basis):
         geometry = far_geometry if far_field else shading_geometry(chunk_points, plan_lights, falloff)
@@ -380,6 +383,7 @@ def render_under_patterns(
             chunks.append(checkpoint(render_chunk, *arguments, use_reentrant=False))
         else:
             chunks.append(render_chunk(*arguments))
-    if not chunks:
-        return normals.new_zeros((emission.shape[0], 0, 3))
+    if not chunks:  # no pixels: an empty result that is still on the inputs' graph (backward works)
+        inputs = sum(t.sum() * 0 for t in (normals, emission, weights, *basis))
+        return normals.new_zeros((emission.shape[0], 0, 3)) + inputs.to(dtype)
     return torch.cat(chunks, dim=1)

@@ -32,8 +32,10 @@ def angular_error_deg(estimate: torch.Tensor, truth: torch.Tensor) -> torch.Tens
 
     Returns:
         (...) angles in [0, 180] degrees in the dtype of ``estimate`` (float32 for integer input),
-        always finite (a zero vector gives 90 degrees). Differentiable with finite gradients (in
-        float16, the gradient of vectors shorter than about 1e-3 exceeds the dtype's range).
+        always finite (a zero vector gives 90 degrees). Differentiable with finite gradients, except
+        that the gradient (about 1 / length) of vectors shorter than about 1 / the dtype's largest
+        number exceeds the dtype's range: below about 1e-3 in float16, subnormal vectors in float32
+        and float64.
 
     Example:
         >>> angular_error_deg(torch.tensor([[0.0, 0.0, -1.0]]), torch.tensor([[0.0, 1.0, -1.0]]))

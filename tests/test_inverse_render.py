@@ -196,6 +196,13 @@ def test_degenerate_inputs_give_finite_values_and_gradients():
     images.sum().backward()
     assert bool(torch.isfinite(images).all())
     assert all(bool(torch.isfinite(leaf.grad).all()) for leaf in leaves)
+    # Zero pixels: an empty result on the graph; a float32 normal of length 1e20 renders as its unit vector.
+    empty = [leaf[:0] if index < 2 else leaf for index, leaf in enumerate(leaves)]
+    render_under_patterns(empty[0], points[:0], lights, emission, *empty[1:], Falloff()).sum().backward()
+    long_normal = normals[3:4].float() * 1e20
+    assert torch.allclose(render_under_patterns(long_normal, points[3:4].float(), lights.float(), emission.float(), weights[3:4].float(),
+                                                diffuse.float(), specular.float(), roughness.float(), Falloff()),
+                          images[:, 3:4].detach().float(), rtol=1e-4)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -93,6 +93,11 @@ def test_capped_loss_with_a_cap_beyond_float32_is_the_angular_loss():
     angular = normal_loss(estimate, truth, "angular")
     for cap in (180.0, 1e300, math.inf):
         assert torch.equal(normal_loss(estimate, truth, "capped_angular", cap), angular)
+    # Bad input raises instead of a NaN loss or a silent fallback to another kind.
+    for args in ((estimate, truth, "angualr"), (estimate[:0], truth[:0], "angular"), (estimate, truth[0], "angular"),
+                 (estimate, truth, "capped_angular", math.nan)):
+        with pytest.raises(InputError):
+            normal_loss(*args)
 
 
 def test_normal_loss_is_finite_at_exact_match():

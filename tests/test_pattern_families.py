@@ -59,6 +59,19 @@ def test_unknown_family_raises_with_valid_names():
         make_patterns("flat", 4)
 
 
+def test_generate_takes_float32_values_at_the_bounds_and_refuses_overflowing_sharpness():
+    """float32 rounding of a float64 bound (tri_gradient's radius sqrt(20)) used to count as outside,
+    and a sharpness finite as a Python float but not in float32 gave NaN patterns."""
+    family = get_family("tri_gradient")
+    for count, rows, cols in ((2, 1, 2), (4, 5, 7)):
+        low, high = family.bounds(count, rows, cols)
+        for edge in (low, high):
+            assert torch.isfinite(family.generate(torch.tensor(edge, dtype=torch.float32), count, rows, cols)).all()
+    low, high = get_family("olat").bounds(4, 9, 16)
+    with pytest.raises(InputError, match="sharpness must be positive and at most"):
+        get_family("olat").generate(torch.tensor((low + high) / 2, dtype=torch.float32), 4, 9, 16, sharpness=1e39)
+
+
 @pytest.mark.parametrize("name", sorted(DESIGN_NAMES))
 @pytest.mark.parametrize("grid", GRIDS)
 def test_family_shapes_bounds_and_range(name, grid):

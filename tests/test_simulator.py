@@ -201,6 +201,15 @@ def test_review_fixes_for_sensor_rig_and_files(tiny_rig, tmp_path):
     reference = render_olat(*shading, lambda d: 1.0 / d**2)[0]
     for falloff in (lambda d: float(1.0 / d.item() ** 2), lambda d: (1.0 / d**2).numpy()):
         assert torch.allclose(render_olat(*shading, falloff)[0], reference)
+    # NaN, negative albedo, wrong shapes and an unknown Fresnel are refused, not rendered.
+    bad = {1: torch.tensor([[math.nan, 0.0, -1.0]]), 2: torch.zeros(1, 2), 3: torch.ones(1, 2), 4: -torch.ones(1, 3), 6: torch.full((1,), 2.0)}
+    for position, value in bad.items():
+        with pytest.raises(InputError):
+            render_olat(*[value if index == position else item for index, item in enumerate(shading)])
+    with pytest.raises(InputError, match="visibility"):
+        render_olat(*shading, visibility=torch.full((1, 1), math.nan))
+    with pytest.raises(InputError, match="fresnel must be one of"):
+        render_olat(*shading, fresnel="schlik")
     umask = os.umask(0o022)
     try:
         write_text(tmp_path / "a.txt", "x")

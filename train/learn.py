@@ -180,7 +180,18 @@ def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
 
 def normal_loss(estimate: torch.Tensor, truth: torch.Tensor, kind: str, angle_cap_deg: float = DEFAULT_ANGLE_CAP_DEG) -> torch.Tensor:
     """Mean error between (N, 3) unit normals: 'angular' (radians), 'capped_angular' (radians,
-    each pixel's angle at most ``angle_cap_deg`` degrees) or 'cosine' (1 - cos); a 0-d tensor."""
+    each pixel's angle at most ``angle_cap_deg`` degrees) or 'cosine' (1 - cos); a 0-d tensor.
+
+    Raises:
+        InputError: an unknown ``kind``, shapes that are not the same (N, 3) with N >= 1, or a NaN
+            cap. (The values are not scanned: a hot path of learning, fed by the solvers.)
+    """
+    if kind not in LOSSES:
+        raise InputError(f"loss must be one of {', '.join(LOSSES)}, got {kind!r}")
+    if estimate.dim() != 2 or estimate.shape[-1] != 3 or estimate.shape != truth.shape or estimate.shape[0] == 0:
+        raise InputError(f"normal_loss needs two (N, 3) normal arrays with N >= 1, got {tuple(estimate.shape)} and {tuple(truth.shape)}")
+    if math.isnan(angle_cap_deg):
+        raise InputError("angle_cap_deg must be a number of degrees, got nan")
     cosine = (estimate * truth).sum(-1)
     if kind == "cosine":
         return (1.0 - cosine).mean()
