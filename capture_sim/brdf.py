@@ -58,6 +58,12 @@ FRESNEL_KINDS = ("constant", "schlick")
 """F = 1, or Schlick's approximation of a dielectric (F0 = 0.04)."""
 
 
+def check_fresnel(fresnel) -> None:
+    """Raise ``InputError`` unless ``fresnel`` names one of ``FRESNEL_KINDS``."""
+    if fresnel not in FRESNEL_KINDS:
+        raise InputError(f"fresnel must be one of {', '.join(FRESNEL_KINDS)}, got {fresnel!r}")
+
+
 def cook_torrance_specular(
     normal: torch.Tensor,
     light_dir: torch.Tensor,
@@ -86,7 +92,7 @@ def cook_torrance_specular(
     if fresnel == "schlick":
         v_dot_h = (view_dir * half).sum(-1).clamp(0.0, 1.0)
         lobe = lobe * (0.04 + 0.96 * (1.0 - v_dot_h) ** 5)
-    elif fresnel not in FRESNEL_KINDS:
-        raise InputError(f"fresnel must be one of {', '.join(FRESNEL_KINDS)}, got {fresnel!r}")
+    else:
+        check_fresnel(fresnel)
     visible = (n_dot_l > 0) & (n_dot_v > 0)
     return torch.where(visible, lobe, torch.zeros_like(lobe))

@@ -12,7 +12,7 @@ import math
 
 import torch
 
-from capture_sim.brdf import FRESNEL_KINDS, cook_torrance_specular
+from capture_sim.brdf import check_fresnel, cook_torrance_specular
 from capture_sim.errors import InputError, check_array
 from capture_sim.geometry import light_geometry, view_directions
 from capture_sim.rig import Falloff, checked_falloff
@@ -49,8 +49,7 @@ def render_olat(
         (float16 and bfloat16 inputs are rendered in float32, whose small denominators they cannot
         hold, and the result is clamped to their range).
     """
-    _check_inputs(points, normals, lights, weights, diffuse_albedo, specular_albedo, roughness, visibility, fresnel)
-    if points.dtype in (torch.float16, torch.bfloat16):
+    if isinstance(points, torch.Tensor) and points.dtype in (torch.float16, torch.bfloat16):
         def wide(value):
             return value.float() if isinstance(value, torch.Tensor) and value.is_floating_point() else value
 
@@ -58,6 +57,7 @@ def render_olat(
                                falloff, wide(visibility), fresnel)
         limit = torch.finfo(points.dtype).max
         return tuple(image.clamp(max=limit).to(points.dtype) for image in rendered)
+    _check_inputs(points, normals, lights, weights, diffuse_albedo, specular_albedo, roughness, visibility, fresnel)
     light_dirs, distance = light_geometry(points, lights)  # (N, K, 3), (N, K)
     falloff_values = checked_falloff(falloff, distance).to(distance.dtype)  # DESIGN section 3: a fitted falloff can be negative or infinite
     view_dir = view_directions(points)[:, None, :]  # (N, 1, 3)
@@ -81,6 +81,11 @@ def render_olat(
 
 def _check_inputs(points, normals, lights, weights, diffuse_albedo, specular_albedo, roughness, visibility, fresnel) -> None:
     """``InputError`` for the shapes and ranges ``render_olat`` documents (NaN anywhere included)."""
+    named = {"points": points, "normals": normals, "lights": lights, "weights": weights, "diffuse_albedo": diffuse_albedo,
+             "specular_albedo": specular_albedo, "roughness": roughness, "visibility": visibility}
+    for name, value in named.items():
+        if value is not None and not isinstance(value, torch.Tensor):
+            raise InputError(f"{name}: expected a torch tensor, got {type(value).__name__}")
     check_array("points", points, ("N", 3))
     count = points.shape[0]
     check_array("normals", normals, (count, 3))
@@ -89,9 +94,9 @@ def _check_inputs(points, normals, lights, weights, diffuse_albedo, specular_alb
     bases = weights.shape[1]
     per_point = (count, bases)
     check_array("diffuse_albedo", diffuse_albedo, (bases, 3) if diffuse_albedo.dim() == 2 else (*per_point, 3), value_range=(0.0, math.inf))
-    check_array("specular_albedo", specular_albedo, (bases,) if specular_albedo.dim() == 1 else per_point, value_range=(0.0, math.inf))
-    check_array("roughness", roughness, (bases,) if roughness.dim() == 1 else per_point, value_range=(0.0, 1.0))
+    for name, value, value_range in (("specular_albedo", specular_albedo, (0.0, math.inf)), ("roughness", roughness, (0.0, 1.0))):
+        # one value, one per basis, or one per point and basis (broadcast to weights' shape)
+        check_array(name, value, ((), (bases,), per_point)[min(value.dim(), 2)], value_range=value_range)
     if visibility is not None:
         check_array("visibility", visibility, (count, lights.shape[0]), value_range=(0.0, 1.0))
-    if fresnel not in FRESNEL_KINDS:
-        raise InputError(f"fresnel must be one of {', '.join(FRESNEL_KINDS)}, got {fresnel!r}")
+    check_fresnel(fresnel)

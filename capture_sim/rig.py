@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -75,15 +76,19 @@ leave float32's comfortable range)."""
 
 
 def check_light_positions(name: str, positions) -> None:
-    """Raise ``InputError`` unless ``positions`` is an (R, C, 3) array of finite coordinates within
-    ``MAX_LIGHT_DISTANCE_M`` of the camera."""
+    """Raise ``InputError`` unless ``positions`` is an (R, C, 3) array of finite coordinates of at
+    most ``MAX_LIGHT_DISTANCE_M`` in magnitude (a bound on each coordinate: a norm could overflow)."""
     check_array(name, positions, ("R", "C", 3))
     if float(np.abs(np.asarray(positions, dtype=np.float64)).max(initial=0.0)) > MAX_LIGHT_DISTANCE_M:
-        raise InputError(f"{name} must lie within {MAX_LIGHT_DISTANCE_M:g} m of the camera (metres, camera frame)")
+        raise InputError(f"{name} must have coordinates within {MAX_LIGHT_DISTANCE_M:g} m of the camera (metres, camera frame)")
 
 
 MAX_NOISE_VARIANCE = 1e12
 """Largest shot gain and squared read noise (full scale 1): a noise std of 1e6 full scales."""
+
+MAX_NOISE_SCALE = 1e6
+"""Largest multiplier of a rig's noise variances (``NoiseModel.scaled``): at 1e6 the reference
+rig's noise is ~5x full scale (pure noise); far beyond, the simulated variances overflow float32."""
 
 
 @dataclass(frozen=True)
@@ -105,8 +110,20 @@ class NoiseModel:
                              f"(full-scale units), got {self.shot!r}, {self.read_std!r}")
 
     def scaled(self, factor: float) -> "NoiseModel":
-        """Noise with both variance terms multiplied by ``factor`` (0 gives a noise-free sensor)."""
-        return NoiseModel(shot=self.shot * factor, read_std=self.read_std * math.sqrt(factor))
+        """Noise with both variance terms multiplied by ``factor`` in [0, MAX_NOISE_SCALE] (0 gives
+        a noise-free sensor)."""
+        check_noise_scale("noise scale", factor)
+        try:
+            return NoiseModel(shot=self.shot * factor, read_std=self.read_std * math.sqrt(factor))
+        except InputError:
+            raise InputError(f"noise scale {factor:g} takes this rig's noise (shot {self.shot:g}, read_std {self.read_std:g}) "
+                             f"beyond a variance of {MAX_NOISE_VARIANCE:g} full-scale units; use a smaller noise scale") from None
+
+
+def check_noise_scale(name: str, value) -> None:
+    """Raise ``InputError`` unless ``value`` is a number in [0, MAX_NOISE_SCALE]."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0 <= value <= MAX_NOISE_SCALE:
+        raise InputError(f"{name} must be a number in [0, {MAX_NOISE_SCALE:g}] (a multiple of the rig's noise variances), got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -315,6 +332,20 @@ RIG_KEYS = {
 """Keys of a rig TOML by table. A misspelt key would otherwise fall back to its default silently."""
 
 
+def _boolean_key(value, where: str = "") -> tuple[str, bool] | None:
+    """(dotted key, value) of the first boolean in a parsed TOML value, or None (``True == 1``:
+    numpy and arithmetic take a boolean for a number silently, and no rig value is a boolean)."""
+    if isinstance(value, bool):
+        return where, value
+    if isinstance(value, dict):
+        children = [(f"{where}.{key}" if where else str(key), item) for key, item in value.items()]
+    elif isinstance(value, list):
+        children = [(where, item) for item in value]
+    else:
+        return None
+    return next((found for key, item in children if (found := _boolean_key(item, key)) is not None), None)
+
+
 def _check_rig_keys(config: dict, name: str) -> None:
     for table, known in RIG_KEYS.items():
         values = config
@@ -326,6 +357,9 @@ def _check_rig_keys(config: dict, name: str) -> None:
         if unknown:
             where = f"[{table}]" if table else "top level"
             raise InputError(f"rig {name}: unknown key(s) {', '.join(unknown)} at {where}; known: {', '.join(known)}")
+    boolean = _boolean_key(config)
+    if boolean is not None:
+        raise InputError(f"rig {name}: {boolean[0]} must hold numbers or text, got {boolean[1]!r}")
     falloff = config.get("falloff", {})
     # a and b belong to the fitted kind alone: missing, they would fall back to 1 / d^2 silently.
     if falloff.get("kind", "inverse_square") == "fitted" and not {"a", "b"} <= set(falloff):

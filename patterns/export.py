@@ -276,7 +276,10 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
     if len(pattern_frames) != manifest["num_patterns"] or [f["index"] for f in pattern_frames] != list(range(len(pattern_frames))):
         raise InputError(f"{frames_dir}: manifest lists pattern frames {[f['index'] for f in pattern_frames]}, expected 0..{manifest['num_patterns'] - 1}")
     # The listed values first: their shape must restate the grid before a frame is averaged over it.
-    listed = np.asarray(manifest["patterns"])
+    try:
+        listed = np.asarray(manifest["patterns"])
+    except ValueError:  # lists of uneven lengths
+        listed = np.zeros(0)
     if listed.dtype.kind not in "iuf" or listed.shape != (len(pattern_frames), rows, cols, 3) or not np.isfinite(listed).all():
         raise InputError(f"{frames_dir}: manifest patterns are not a finite {len(pattern_frames)} x {rows} x {cols} x 3 array of numbers")
     row_bounds = superpixel_boundaries(rows, height)

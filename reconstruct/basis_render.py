@@ -39,7 +39,9 @@ from capture_sim.rig import checked_falloff
 RENDER_CHUNK_PIXELS = 4096
 """Pixels shaded at once by ``render_under_patterns``: a few (4096, K) temporaries of ~2.4 MB each."""
 
-_EPS = 1e-6
+NORM_FLOOR = 1e-6
+"""Smallest norm (or cosine) a direction, normal or lobe term is divided by (shared by the inverse
+renderer's modules)."""
 
 
 # ----------------------------------------------------------------------------------------------
@@ -110,14 +112,14 @@ def shading_geometry(points: torch.Tensor, lights: torch.Tensor, falloff: Callab
         inverse_distance = torch.empty((rows, num_lights), dtype=points.dtype)
         falloff_values = torch.empty_like(inverse_distance)
         inverse_half_norm = torch.empty_like(inverse_distance)
-        view = view_directions(anchor, _EPS)
+        view = view_directions(anchor, NORM_FLOOR)
         for start in range(0, rows, chunk_pixels):
             block = slice(start, start + chunk_pixels)
             light_dirs, distance = light_geometry(anchor[block], lights, min_distance)
             inverse_distance[block] = 1.0 / distance
             # narrow dtypes keep the largest value they hold where a light is millimetres away
             falloff_values[block] = checked_falloff(falloff, distance).clamp(max=torch.finfo(points.dtype).max)
-            inverse_half_norm[block] = 1.0 / (light_dirs + view[block, None, :]).norm(dim=-1).clamp_min(_EPS)
+            inverse_half_norm[block] = 1.0 / (light_dirs + view[block, None, :]).norm(dim=-1).clamp_min(NORM_FLOOR)
     return ShadingGeometry(lights, anchor, view, inverse_distance, falloff_values, inverse_half_norm)
 
 
@@ -223,7 +225,7 @@ def _specular_sum(n_dot_l_pos, n_dot_h, n_dot_v, weights, specular, roughness):
     alpha2 = alpha * alpha
     k = alpha / 2.0
     visible = (n_dot_v > 0).to(n_dot_v.dtype)
-    n_dot_v_safe = n_dot_v.clamp_min(_EPS)
+    n_dot_v_safe = n_dot_v.clamp_min(NORM_FLOOR)
     # Per-pixel factor of each basis: w rho_s alpha^2 / (4 pi (n.v (1 - k) + k)), (B, J).
     coefficient = weights * (specular * alpha2 / (4.0 * math.pi)) * visible / (n_dot_v_safe * (1.0 - k) + k)
     return _LobeSum.apply(n_dot_l_pos, n_dot_h * n_dot_h, (1.0 - n_dot_h) * (1.0 + n_dot_h), coefficient, alpha2, k)
@@ -366,7 +368,7 @@ def render_under_patterns(
     # Long vectors are scaled to components of at most 1 first (the norm of a float32 vector of
     # length 1e20 overflows); shorter ones are left exactly as they are.
     scaled = normals / normals.detach().abs().amax(-1, keepdim=True).clamp_min(1.0)
-    unit_normals = scaled / scaled.norm(dim=-1, keepdim=True).clamp_min(_EPS)
+    unit_normals = scaled / scaled.norm(dim=-1, keepdim=True).clamp_min(NORM_FLOOR)
 
     def render_chunk(chunk_normals, chunk_points, chunk_weights, *basis):
         geometry = far_geometry if far_field else shading_geometry(chunk_points, plan_lights, falloff)

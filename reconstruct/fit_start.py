@@ -17,10 +17,9 @@ import torch
 from capture_sim.errors import InputError, check_array
 from capture_sim.geometry import light_geometry, view_directions
 from capture_sim.rig import checked_falloff
-from reconstruct.basis_render import EmissionPlan, render_under_patterns
+from reconstruct.basis_render import NORM_FLOOR, EmissionPlan, render_under_patterns
 from reconstruct.photometric_stereo import PSConfig, solve_ps
 
-_EPS = 1e-6
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,7 +107,7 @@ def olat_least_squares(captures, plan: EmissionPlan, points, lights, falloff, sh
         normal[block] = torch.where(good[:, None], unit, torch.zeros((), dtype=torch.float64))
         albedo[block] = torch.where(good[:, None], channel_albedo.clamp_min(0.0), torch.zeros((), dtype=torch.float64))
         valid[block] = good
-    view = view_directions(points.double(), _EPS)
+    view = view_directions(points.double(), NORM_FLOOR)
     valid &= (normal * view).sum(-1) > 0
     return normal, albedo, valid
 
@@ -209,7 +208,7 @@ def initial_estimate(captures, emission, points, lights, falloff, ps_config: PSC
             normal, albedo, valid = result.normal, result.albedo, result.valid
     valid = valid & torch.isfinite(normal).all(-1) & torch.isfinite(albedo).all(-1)
     points = points.float()
-    view = view_directions(points, _EPS)
+    view = view_directions(points, NORM_FLOOR)
     normal = torch.where(valid[:, None], normal.float(), view)
     albedo = torch.where(valid[:, None], math.pi * albedo.float(), torch.zeros((), dtype=torch.float32))
     filled = valid
@@ -217,7 +216,7 @@ def initial_estimate(captures, emission, points, lights, falloff, ps_config: PSC
         both, filled = fill_from_neighbours(torch.cat([normal, albedo], 1), valid, pixel_index.long(), height, width)
         normal = torch.where(filled[:, None], both[:, :3], view)
         albedo = both[:, 3:]
-    normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(_EPS)
+    normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(NORM_FLOOR)
     fill = albedo[valid].median(0).values if bool(valid.any()) else torch.full((3,), 0.5)
     albedo = torch.where(filled[:, None], albedo, fill)
     normal = into_visible_hemisphere(normal, view, visible_margin)

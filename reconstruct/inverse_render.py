@@ -37,10 +37,9 @@ from typing import Callable
 import torch
 
 from capture_sim.errors import InputError, check_array
-from reconstruct.basis_render import RENDER_CHUNK_PIXELS, EmissionPlan, ShadingGeometry, render_under_patterns, shade_and_contract, shading_geometry
+from reconstruct.basis_render import NORM_FLOOR, RENDER_CHUNK_PIXELS, EmissionPlan, ShadingGeometry, render_under_patterns, shade_and_contract, shading_geometry
 from reconstruct.fit_start import InitialEstimate, cluster_albedo, grid_neighbours, initial_estimate, least_squares_albedos
 
-_EPS = 1e-6
 
 
 # ----------------------------------------------------------------------------------------------
@@ -182,7 +181,7 @@ class BasisModel(torch.nn.Module):
 
     def normals(self, index=None) -> torch.Tensor:
         raw = self.normal_raw if index is None else self.normal_raw[index]
-        return raw / raw.norm(dim=-1, keepdim=True).clamp_min(_EPS)
+        return raw / raw.norm(dim=-1, keepdim=True).clamp_min(NORM_FLOOR)
 
     def weights(self, index=None) -> torch.Tensor:
         logits = self.weight_logits if index is None else self.weight_logits[index]
@@ -468,7 +467,7 @@ def _frames(axis: torch.Tensor) -> torch.Tensor:
     """(B, 3, 3) orthonormal frames whose third row is the unit ``axis`` (B, 3)."""
     helper = torch.where(axis[:, :1].abs() < 0.9, torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 1.0, 0.0]))
     first = torch.linalg.cross(helper.expand_as(axis), axis)
-    first = first / first.norm(dim=-1, keepdim=True).clamp_min(_EPS)
+    first = first / first.norm(dim=-1, keepdim=True).clamp_min(NORM_FLOOR)
     return torch.stack([first, torch.linalg.cross(axis, first), axis], dim=1)
 
 

@@ -187,7 +187,7 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         (["evaluate", "--patterns", "olat", "--scenes", str(scene_file), "--exposure", "1e300"], "exposure 1e+300 is too large"),
         (simulate + [str(scene_file), "--rig", str(tmp_path / "gamma.toml")], "display gamma must lie in"),
         (simulate + [str(scene_file), "--rig", str(tmp_path / "rows.toml")], "panel grid must be whole numbers"),
-        (["train", "--config", str(tmp_path / "inf_noise.toml"), "--out", str(tmp_path / "t.npz")], "noise_scale must be a finite number"),
+        (["train", "--config", str(tmp_path / "inf_noise.toml"), "--out", str(tmp_path / "t.npz")], "noise_scale must be a number in [0, 1e+06]"),
         (["scenes", "synth", "--out", str(tmp_path / "tiny"), "--size", "2x2"], "covers no pixel centre of a 2 x 2 image"),
         (simulate + [str(scene_file), "--rig", str(tmp_path / "height.toml")], "camera height and width must be whole numbers"),
         # argparse's own errors, in one line too.
@@ -350,6 +350,8 @@ def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeyp
         "shot_huge": ("shot = 1e-4", "shot = 1e308"),
         "read_huge": ("read_std = 5e-4", "read_std = 1e308"),
         "panel_pixels_huge": ("panel_pixels = [2160, 3840]", "panel_pixels = [1000000000, 3840]"),
+        "tilt_bool": ("tilt_deg = 15.0", "tilt_deg = true"),
+        "offset_bool": ("offset = [0.03, -0.25]", "offset = [true, -0.25]"),
     }.items():
         assert old in text, (name, old)
         (tmp_path / f"{name}.toml").write_text(text.replace(old, new))

@@ -175,6 +175,11 @@ def test_import_refuses_tampered_or_incomplete_folders(tmp_path, small_rig):
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(InputError, match="not a finite 2 x 9 x 16 x 3 array"):
         import_frames(tmp_path)
+    uneven = json.loads(json.dumps(manifest))
+    uneven["patterns"][0].pop()  # lists of uneven lengths: numpy raises a bare ValueError
+    (tmp_path / "manifest.json").write_text(json.dumps(uneven))
+    with pytest.raises(InputError, match="not a finite 2 x 9 x 16 x 3 array"):
+        import_frames(tmp_path)
     manifest["patterns"][0][0][0] = ["1", "1", "1"]  # numpy would read text as numbers
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(InputError, match="not a finite 2 x 9 x 16 x 3 array"):

@@ -93,6 +93,10 @@ def test_capped_loss_with_a_cap_beyond_float32_is_the_angular_loss():
     angular = normal_loss(estimate, truth, "angular")
     for cap in (180.0, 1e300, math.inf):
         assert torch.equal(normal_loss(estimate, truth, "capped_angular", cap), angular)
+    assert float(normal_loss(estimate.numpy(), truth.numpy(), "cosine")) == pytest.approx(float(normal_loss(estimate, truth, "cosine")))
+    # A noise scale beyond MAX_NOISE_SCALE fails when the config is made, not at the first capture.
+    with pytest.raises(InputError, match="noise_scale must be a number in"):
+        TrainConfig(noise_scale=1e17)
     # Bad input raises instead of a NaN loss or a silent fallback to another kind.
     for args in ((estimate, truth, "angualr"), (estimate[:0], truth[:0], "angular"), (estimate, truth[0], "angular"),
                  (estimate, truth, "capped_angular", math.nan)):

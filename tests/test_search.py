@@ -42,6 +42,13 @@ def scene_dir(tmp_path_factory):
     return folder
 
 
+def test_search_config_refuses_a_sharpness_the_families_refuse():
+    from patterns.families import MAX_SHARPNESS
+
+    with pytest.raises(InputError, match="sharpness must be positive and at most"):
+        SearchConfig(sharpness=MAX_SHARPNESS * 10)
+
+
 @pytest.mark.parametrize("algorithm", ["LN_BOBYQA", "LN_SBPLX", "LD_MMA", "LD_LBFGS", "GN_CRS2_LM"])
 def test_minimise_improves_and_keeps_history(algorithm):
     start = np.array([-0.5, 0.5, 0.0])

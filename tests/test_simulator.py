@@ -210,6 +210,12 @@ def test_review_fixes_for_sensor_rig_and_files(tiny_rig, tmp_path):
         render_olat(*shading, visibility=torch.full((1, 1), math.nan))
     with pytest.raises(InputError, match="fresnel must be one of"):
         render_olat(*shading, fresnel="schlik")
+    with pytest.raises(InputError, match="diffuse_albedo: expected a torch tensor"):
+        render_olat(*shading[:4], [[1.0, 1.0, 1.0]], *shading[5:])
+    with pytest.raises(InputError, match="noise scale 1e\\+06 takes this rig's noise"):
+        NoiseModel(shot=1e7).scaled(1e6)
+    # one specular albedo and roughness for every basis (0-d) broadcast as before
+    assert torch.equal(render_olat(*shading[:5], torch.tensor(0.0), torch.tensor(1.0))[0], reference)
     umask = os.umask(0o022)
     try:
         write_text(tmp_path / "a.txt", "x")

@@ -394,7 +394,7 @@ def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tm
         warnings.simplefilter("error", RuntimeWarning)
         with pytest.raises(InputError, match="unit"):
             validate_scene(dataclasses.replace(scene, normal=np.full_like(scene.normal, 1e300, dtype=np.float64)))
-        with pytest.raises(InputError, match="within 1e\\+06 m of the camera"):
+        with pytest.raises(InputError, match="coordinates within 1e\\+06 m of the camera"):
             validate_scene(dataclasses.replace(scene, light_positions=np.full_like(scene.light_positions, 1e300, dtype=np.float64)))
     with pytest.raises(InputError, match="K_cam"):
         validate_scene(dataclasses.replace(scene, K_cam=np.zeros((3, 3))))

@@ -21,7 +21,7 @@ from tqdm import tqdm
 from capture_sim.atomic import write_json
 from capture_sim.display import display_emission
 from capture_sim.errors import InputError
-from capture_sim.rig import load_rig
+from capture_sim.rig import check_noise_scale, load_rig
 from capture_sim.geometry import pixel_rays
 from capture_sim.render import render_olat
 from capture_sim.simulator import LightTransport, light_transport, simulate
@@ -348,8 +348,10 @@ def noise_sweep(scenes: list[ScenePixels], noise_scales=SWEEP_NOISE_SCALES, meth
     """
     if not scenes:
         raise InputError("the noise sweep needs at least one scene")
-    if not noise_scales or any(scale < 0 for scale in noise_scales):
+    if not noise_scales:
         raise InputError("noise scales must be a non-empty list of numbers >= 0")
+    for scale in noise_scales:
+        check_noise_scale("noise scale", scale)
     rig = scenes[0].rig
     rows = []
     bar = tqdm(total=len(methods) * len(noise_scales) * len(scenes), desc="noise sweep", unit="solve", disable=not progress)

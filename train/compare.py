@@ -190,8 +190,6 @@ def _evaluate_in_workers(jobs: list, workers: int, on_result: Callable[[tuple, l
     try:
         for index in range(workers):
             share = jobs[index::workers]
-            if not share:
-                continue
             receiver, sender = context.Pipe(duplex=False)
             process = context.Process(target=_worker_main, args=(share, sender), daemon=True)
             processes.append(process)  # before start: a Ctrl-C during the start must still stop it
@@ -401,7 +399,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     results["report"] = str(out_dir / "report.md")
     # The heuristic pattern files, report, charts, results and config are moved into place
     # together: a run refused or interrupted part-way leaves them all describing the last
-    # finished run (learned and searched files are kept per settings, see ``_reusable``).
+    # finished run (learned and searched files are kept per settings, see ``train.compare_methods``).
     obsolete: list = []  # an earlier run's charts that this report does not show: they would contradict it
     with staged_files(out_dir, last=("results.json", "config.json"), obsolete=obsolete) as staging:
         for method in methods:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 
 from capture_sim.errors import InputError, check_seed
-from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, Rig, rig_file
+from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, MAX_NOISE_SCALE, Rig, rig_file
 from capture_sim.toml_io import load_toml
 from patterns.families import FAMILIES, PRESETS, get_family
 from train.config_io import config_from_dict, config_to_dict, json_value
@@ -22,9 +22,6 @@ from train.search import SearchConfig
 DEFAULT_EXPOSURE_MS = 440.0
 """Exposure time per image (ms) when the rig's TOML gives no ``camera.exposure_ms``."""
 
-MAX_NOISE_SCALE = 1e6
-"""Largest noise scale compared: at 1e6 the reference rig's noise is ~5x full scale (pure noise);
-far beyond, the simulated variances overflow float32 and the captures are not finite."""
 _SET_BY_COMPARE = ("num_patterns", "seed", "rig", "scenes", "val_scenes", "scene_size", "scene_seed", "noise_scale", "rerender_weight")
 """TrainConfig fields that ``[learned]`` tables may not set (``rerender_weight``: learned runs are
 the normal-only ones the report compares ``rerender_counts`` runs with)."""

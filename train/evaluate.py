@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from capture_sim.errors import InputError, check_seed
+from capture_sim.rig import check_noise_scale
 from capture_sim.simulator import auto_exposure, check_exposure_range, sensor
 from reconstruct.metrics import angular_error_deg, normal_metrics
 from reconstruct.photometric_stereo import PSConfig, PSResult, solve_ps
@@ -39,8 +40,7 @@ class EvalSettings:
     def __post_init__(self):
         if self.method not in METHODS:
             raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
-        if self.noise_scale < 0:
-            raise InputError("noise scale must be >= 0")
+        check_noise_scale("noise scale", self.noise_scale)
         check_seed("seed", self.seed)
 
 

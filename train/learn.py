@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from capture_sim.atomic import atomic_path, exclusive_output, write_json
 from capture_sim.errors import InputError, check_seed
-from capture_sim.rig import DEFAULT_RIG, load_rig, rig_file, rig_source
+from capture_sim.rig import DEFAULT_RIG, check_noise_scale, load_rig, rig_file, rig_source
 from capture_sim.scene import file_fingerprints, scene_paths
 from patterns.families import FAMILIES, get_family, make_patterns
 from patterns.io import check_patterns_match_rig, load_patterns, save_patterns
@@ -134,9 +134,9 @@ class TrainConfig:
             raise InputError(f"learning_rate must be a number in (0, {MAX_LEARNING_RATE:g}], got {self.learning_rate!r}")
         if not 0 < self.final_lr_fraction <= 1:
             raise InputError(f"final_lr_fraction must lie in (0, 1], got {self.final_lr_fraction!r}")
-        for name in ("noise_scale", "rerender_weight"):
-            if not 0 <= getattr(self, name) < math.inf:
-                raise InputError(f"{name} must be a finite number >= 0, got {getattr(self, name)!r}")
+        check_noise_scale("noise_scale", self.noise_scale)
+        if not 0 <= self.rerender_weight < math.inf:
+            raise InputError(f"rerender_weight must be a finite number >= 0, got {self.rerender_weight!r}")
         if self.checkpoint_every < 1:
             raise InputError(f"checkpoint_every must be >= 1, got {self.checkpoint_every}")
         if self.val_every < 0:
@@ -188,6 +188,7 @@ def normal_loss(estimate: torch.Tensor, truth: torch.Tensor, kind: str, angle_ca
     """
     if kind not in LOSSES:
         raise InputError(f"loss must be one of {', '.join(LOSSES)}, got {kind!r}")
+    estimate, truth = torch.as_tensor(estimate), torch.as_tensor(truth)
     if estimate.dim() != 2 or estimate.shape[-1] != 3 or estimate.shape != truth.shape or estimate.shape[0] == 0:
         raise InputError(f"normal_loss needs two (N, 3) normal arrays with N >= 1, got {tuple(estimate.shape)} and {tuple(truth.shape)}")
     if math.isnan(angle_cap_deg):

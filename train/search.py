@@ -41,8 +41,8 @@ from tqdm import tqdm
 
 from capture_sim.atomic import exclusive_output, staged_files, write_json, write_text
 from capture_sim.errors import DisplexWarning, InputError, check_seed
-from capture_sim.rig import DEFAULT_RIG, load_rig
-from patterns.families import PRESETS, default_vector, get_family
+from capture_sim.rig import DEFAULT_RIG, check_noise_scale, load_rig
+from patterns.families import MAX_SHARPNESS, PRESETS, default_vector, get_family
 from patterns.io import save_patterns
 from reconstruct.photometric_stereo import PSConfig, solve_ps
 from train.capture import capture_scene
@@ -124,15 +124,16 @@ class SearchConfig:
         check_seed("scene_seed", self.scene_seed)
         if self.maxtime is not None and not 0 <= self.maxtime < math.inf:
             raise InputError(f"maxtime must be >= 0 seconds (0 = no limit), got {self.maxtime}")
-        for name in ("xtol_rel", "ftol_abs", "noise_scale"):
+        check_noise_scale("noise_scale", self.noise_scale)
+        for name in ("xtol_rel", "ftol_abs"):
             if not 0 <= getattr(self, name) < math.inf:
                 raise InputError(f"{name} must be a finite number >= 0, got {getattr(self, name)!r}")
         if not 0 < self.initial_step <= 1:
             raise InputError(f"initial_step must lie in (0, 1], got {self.initial_step!r}")
         if self.pixels_per_scene < 0:
             raise InputError(f"pixels_per_scene must be >= 0 (0 = every pixel), got {self.pixels_per_scene!r}")
-        if not self.sharpness > 0 or not math.isfinite(self.sharpness):
-            raise InputError(f"sharpness must be positive and finite, got {self.sharpness}")
+        if not 0 < self.sharpness <= MAX_SHARPNESS:
+            raise InputError(f"sharpness must be positive and at most {MAX_SHARPNESS:g} per cell, got {self.sharpness}")
 
 
 # ---------------------------------------------------------------------------------------------
