@@ -405,7 +405,10 @@ def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSC
     Returns:
         PSResult with (N, 3) normals and albedo, (N,) valid, condition, residual and flags. Differentiable
         w.r.t. ``captures`` and ``emission`` (exact implicit gradients of the converged solution);
-        no gradient flows to points or lights.
+        no gradient flows to points or lights. The albedo is in the emission's units, so its
+        gradient grows as 1 / (emission peak)^2: past float32's range for peaks below about 1e-19
+        (the normal's stays finite; use float64, or emission in units near 1, to differentiate
+        the albedo there).
 
     Raises:
         InputError: wrong shapes, non-finite inputs, negative emission (captures may be slightly
