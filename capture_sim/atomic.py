@@ -123,7 +123,7 @@ def atomic_path(path: str | Path, suffix: str = "", sync: bool = False):
 
 
 @contextmanager
-def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list | None = None):
+def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list | None = None, before_moves=None):
     """Yield a temporary folder inside ``folder`` (created if needed) for the files of one command.
 
     When the block ends normally, every file written into it (in subfolders too) replaces its
@@ -136,7 +136,10 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list 
     block raises, the files are discarded, and so are the folders it created (``folder`` and any
     missing parents) if they are empty. A command that writes many files during long work thus
     leaves all of them or none: never new files of some scenes beside an earlier run's results.
-    Callers check the final paths first (``refuse_overwriting``): a rename cannot replace a folder.
+    Callers check the final paths first (``refuse_overwriting``) where they know them before the
+    work; a folder standing where a file goes is refused here anyway, before anything moves.
+    ``before_moves`` (no arguments) is called once those checks pass, right before the first move
+    (e.g. to mark the folder as being replaced).
     """
     folder = Path(folder)
     created = _missing_folders(folder)
@@ -148,6 +151,11 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list 
     try:
         yield staging
         files = sorted(path.relative_to(staging) for path in staging.rglob("*") if not path.is_dir())
+        # A folder (or device) where a file goes would stop the moves half-way: refused before any.
+        for path in [folder / relative for relative in files] + list(obsolete or ()):
+            check_replaceable(path)
+        if before_moves is not None:
+            before_moves()
         for name in last:
             (folder / name).unlink(missing_ok=True)
 

@@ -491,14 +491,26 @@ def panel_positions(
     Returns:
         (R, C, 3) float64 positions in metres, camera frame.
     """
+    def finite(value) -> bool:  # a real number (not a boolean, text or list)
+        return isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+
+    def pair(value) -> bool:
+        return isinstance(value, (list, tuple, np.ndarray)) and len(value) == 2 and all(finite(v) for v in value)
+
     if not (is_whole_number(rows, 1) and is_whole_number(cols, 1)):
         raise InputError(f"panel grid must be whole numbers of at least 1 x 1, got {rows!r} x {cols!r}")
-    if not (len(aspect) == 2 and all(math.isfinite(side) and side > 0 for side in aspect)):
+    if not (pair(aspect) and all(side > 0 for side in aspect)):
         raise InputError(f"panel aspect must be two positive numbers (width, height), got {aspect!r}")
-    if not (len(offset) == 2 and all(math.isfinite(shift) for shift in offset)):
+    if not pair(offset):
         raise InputError(f"panel offset must be two numbers (x, y) in metres, got {offset!r}")
-    if not (math.isfinite(diagonal_inch) and diagonal_inch > 0):
+    if not (finite(diagonal_inch) and diagonal_inch > 0):
         raise InputError(f"panel diagonal_inch must be positive, got {diagonal_inch!r}")
+    if not finite(distance):
+        raise InputError(f"panel distance must be a number of metres, got {distance!r}")
+    if not (finite(tilt_deg) and abs(tilt_deg) <= 90):
+        raise InputError(f"panel tilt_deg must be a number of degrees in [-90, 90], got {tilt_deg!r}")
+    if not (curvature_radius is None or finite(curvature_radius)):
+        raise InputError(f"panel curvature_radius must be a number of metres (0 or absent for a flat panel), got {curvature_radius!r}")
     diagonal = diagonal_inch * 0.0254
     aw, ah = aspect
     width, height = diagonal * aw / math.hypot(aw, ah), diagonal * ah / math.hypot(aw, ah)

@@ -94,7 +94,7 @@ def _exported_files(manifest_path: Path) -> set[str] | None:
             return None
         # The frames as import_frames reads them (capture_order, optional there, restates them).
         return {frame.get("file") for frame in manifest.get("frames", []) if isinstance(frame, dict)}
-    except (OSError, ValueError, AttributeError, TypeError):
+    except (OSError, ValueError, AttributeError, TypeError, RecursionError):  # RecursionError: absurdly nested JSON
         return None
 
 
@@ -178,13 +178,13 @@ def export_frames(
     # last): an export that fails or is interrupted leaves the earlier export as it was.
     # The earlier export's frames that this one does not replace go before its manifest lands.
     obsolete: list = []
-    with staged_files(out_dir, last=(MANIFEST_NAME,), obsolete=obsolete) as staging:
+    # The earlier manifest goes first as the new files move in: the marker says whose frames these
+    # are should that moment be interrupted (written once the moves are sure to start).
+    with staged_files(out_dir, last=(MANIFEST_NAME,), obsolete=obsolete,
+                      before_moves=lambda: write_bytes(marker, b"export in progress\n")) as staging:
         manifest = _write_export(values, rig, staging, bit_depth, include_olat, rig_name or rig.name, compression_level,
                                  (height, width), row_bounds, col_bounds, mirrored)
         obsolete += [path for pattern_glob in FRAME_GLOBS for path in out_dir.glob(pattern_glob) if not (staging / path.name).exists()]
-        # The earlier manifest goes first as the new files move in: the marker says whose frames
-        # these are should that moment be interrupted.
-        write_bytes(marker, b"export in progress\n")
     marker.unlink(missing_ok=True)
     return manifest
 

@@ -351,6 +351,9 @@ def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeyp
         "read_huge": ("read_std = 5e-4", "read_std = 1e308"),
         "panel_pixels_huge": ("panel_pixels = [2160, 3840]", "panel_pixels = [1000000000, 3840]"),
         "tilt_bool": ("tilt_deg = 15.0", "tilt_deg = true"),
+        "tilt_inf": ("tilt_deg = 15.0", "tilt_deg = inf"),
+        "distance_text": ("distance = 0.0", 'distance = "x"'),
+        "curvature_table": ("curvature_radius = 1.8", "curvature_radius = {}"),
         "offset_bool": ("offset = [0.03, -0.25]", "offset = [true, -0.25]"),
     }.items():
         assert old in text, (name, old)
@@ -420,6 +423,17 @@ def test_ctrl_c_in_search_points_to_the_partial_trace(tmp_path, scene_file, caps
     from train.cli import _search_interrupted
 
     assert _search_interrupted(argparse.Namespace(out=odd)).startswith("no evaluation was made yet; an earlier run's")
+
+
+def test_symbolic_link_loops_and_non_utf8_logdirs_give_one_line(tmp_path, capsys):
+    from train.learn import summary_writer
+
+    (tmp_path / "loop.npz").symlink_to(tmp_path / "loop.npz")
+    assert run(["patterns", "make", "--family", "olat", "--M", "2", "--out", str(tmp_path / "loop.npz")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("displex: error:") and "\n" not in err, err
+    with pytest.raises(InputError, match="valid UTF-8"):
+        summary_writer(tmp_path / os.fsdecode(b"logs\xff"))
 
 
 def test_patterns_make_and_export_round_trip(tmp_path):

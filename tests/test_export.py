@@ -296,6 +296,16 @@ def test_export_keeps_frame_files_it_did_not_write(tmp_path, small_rig):
     with pytest.raises(InputError, match="manifest.json was not written by displex export"):
         export_frames(_patterns(small_rig, 1), small_rig, theirs)
     assert sorted(p.name for p in theirs.iterdir()) == ["black.png", "manifest.json"]
+    (theirs / "manifest.json").write_text("[" * 100000 + "]" * 100000)  # too deep for the JSON reader: not an export's
+    with pytest.raises(InputError, match="manifest.json was not written by displex export"):
+        export_frames(_patterns(small_rig, 1), small_rig, theirs)
+    # A folder where a frame goes is refused before anything moves: the earlier export stays whole.
+    (interrupted / "pattern_001.png").unlink()
+    (interrupted / "pattern_001.png").mkdir()
+    before = {path.name: path.read_bytes() for path in interrupted.iterdir() if path.is_file()}
+    with pytest.raises(InputError, match="pattern_001.png: it exists and is not a regular file"):
+        export_frames(_patterns(small_rig, 3), small_rig, interrupted)
+    assert {path.name: path.read_bytes() for path in interrupted.iterdir() if path.is_file()} == before
     with pytest.raises(InputError, match="cannot write into .*black.png/inside: Not a directory"):
         export_frames(_patterns(small_rig, 1), small_rig, theirs / "black.png" / "inside")
 

@@ -537,6 +537,10 @@ def _handle(args) -> int:
         print(f"displex: error: {one_line(err.strerror or err)}{': ' + one_line(name) if name else ''}", file=sys.stderr)
         return 2
     except (MemoryError, RuntimeError) as err:
+        # Python 3.11's Path.resolve reports a symbolic-link loop as a RuntimeError (3.13: OSError).
+        if isinstance(err, RuntimeError) and str(err).startswith("Symlink loop"):
+            print(f"displex: error: {one_line(err)}", file=sys.stderr)
+            return 2
         # torch reports a failed CPU allocation as a RuntimeError; anything else is a bug.
         if not isinstance(err, MemoryError) and "can't allocate memory" not in str(err):
             raise

@@ -193,7 +193,11 @@ class CompareConfig:
             raise InputError("two [[search]] runs have the same family, M and algorithm")
         if len({item.name for item in self.external}) != len(self.external):
             raise InputError("external pattern names must be unique")
-        # Every learning and search config is built now, so a bad value fails before any work.
+        # Every learning and search config is built now, so a bad value fails before any work; the
+        # [learned] table on its own too (its values may be overridden at every M learned now, but
+        # a wrong one is still a mistake in the file).
+        if self.learned:
+            config_from_dict(TrainConfig, {**self.learned, "num_patterns": max(self.pattern_counts)}, source="learned")
         for count in self.learned_pattern_counts():
             self.train_config(count, self.seeds_for(count)[0])
         for count in self.rerender_counts:

@@ -44,6 +44,7 @@ from reconstruct.metrics import angular_error_deg, normal_metrics
 from reconstruct.model_selection import SelectionConfig, choose_light_model, light_spread, select_basis
 from reconstruct.relight import TEST_EVERY, VALIDATION_EVERY, olat_emission, relighting_metrics, split_lights
 from train.figures import for_display, image_grid, normal_panel, normal_to_rgb, save_figure
+from train.learn import tensorboard_folder_name
 from train.scene_pixels import scene_pixels
 from train.simulate_command import parse_exposure, resolve_exposure
 
@@ -198,9 +199,10 @@ class _TensorBoard:
             return
         from torch.utils.tensorboard import SummaryWriter
 
+        name = tensorboard_folder_name(folder / TENSORBOARD_FOLDER)
         (folder / TENSORBOARD_FOLDER).mkdir()
         (folder / TENSORBOARD_FOLDER / TENSORBOARD_MARKER).write_text("written by displex invrender\n")
-        self.writer = SummaryWriter(log_dir=str(folder / TENSORBOARD_FOLDER))
+        self.writer = SummaryWriter(log_dir=name)
 
     def scalars(self, prefix: str, step: int, values: dict) -> None:
         if self.writer is not None:

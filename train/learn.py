@@ -24,7 +24,7 @@ import torch
 from tqdm import tqdm
 
 from capture_sim.atomic import atomic_path, exclusive_output, write_json
-from capture_sim.errors import InputError, check_seed
+from capture_sim.errors import InputError, check_seed, one_line
 from capture_sim.rig import DEFAULT_RIG, check_noise_scale, load_rig, rig_file, rig_source
 from capture_sim.scene import file_fingerprints, scene_paths
 from patterns.families import FAMILIES, get_family, make_patterns
@@ -477,6 +477,7 @@ def summary_writer(logdir: Path | None):
     """A TensorBoard writer for the folder ``logdir`` (created if needed), or None without one."""
     if logdir is None:
         return None
+    name = tensorboard_folder_name(logdir)
     if Path(logdir).exists() and not Path(logdir).is_dir():
         raise InputError(f"--logdir {logdir} is a file, not a folder")
     # The writer writes from a background thread, where a failure would print a thread traceback:
@@ -488,7 +489,18 @@ def summary_writer(logdir: Path | None):
         raise InputError(f"--logdir {logdir} is not writable: {err.strerror or err}") from None
     from torch.utils.tensorboard import SummaryWriter
 
-    return SummaryWriter(str(logdir))
+    return SummaryWriter(name)
+
+
+def tensorboard_folder_name(folder: Path) -> str:
+    """``folder`` as the text TensorBoard's writer takes; ``InputError`` for a name that is not valid
+    UTF-8 (the writer fails on it from inside its own thread)."""
+    name = str(folder)
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        raise InputError(f"{one_line(name)}: TensorBoard logs need a folder name that is valid UTF-8; choose another folder") from None
+    return name
 
 
 def _validate(logits: torch.Tensor, scenes: list[ScenePixels], settings: EvalSettings, writer, step: int) -> float:
