@@ -153,7 +153,8 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list 
         files = sorted(path.relative_to(staging) for path in staging.rglob("*") if not path.is_dir())
         # A folder (or device) where a file goes would stop the moves half-way: refused before any.
         for path in [folder / relative for relative in files] + list(obsolete or ()):
-            check_replaceable(path)
+            if not Path(path).is_symlink():  # a rename replaces a link itself, whatever it points to
+                check_replaceable(path)
         if before_moves is not None:
             before_moves()
         for name in last:

@@ -50,6 +50,12 @@ MAX_SHARPNESS = 1e12
 """Largest edge sharpness per cell: already a step at float32 resolution; far beyond, sharpness x
 cells overflows float32 and the sigmoid gives NaN."""
 
+
+def check_sharpness(sharpness, name: str = "sharpness") -> None:
+    """Raise ``InputError`` unless ``sharpness`` lies in (0, MAX_SHARPNESS]."""
+    if not 0 < sharpness <= MAX_SHARPNESS:
+        raise InputError(f"{name} must be positive and at most {MAX_SHARPNESS:g} per cell, got {sharpness}")
+
 PRESETS = ("default", "ddps")
 
 PRESET_LEVELS = {"default": (0.0, 1.0), "ddps": (0.1, 0.9)}
@@ -169,8 +175,7 @@ class Family:
             raise InputError(
                 f"{self.name}: parameter {names[i]} = {float(detached[i]):.6g} is outside its bounds [{low[i]:g}, {high[i]:g}]"
             )
-        if not 0 < sharpness <= MAX_SHARPNESS:
-            raise InputError(f"{self.name}: sharpness must be positive and at most {MAX_SHARPNESS:g} per cell, got {sharpness}")
+        check_sharpness(sharpness, f"{self.name}: sharpness")
         return self._generate(values, int(num_patterns), int(rows), int(cols), float(sharpness))
 
     @functools.lru_cache(maxsize=32)

@@ -1,7 +1,9 @@
 """The command line end to end on tiny scenes: outputs, exit codes, one-line errors."""
 import argparse
+import io
 import json
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -352,6 +354,7 @@ def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeyp
         "panel_pixels_huge": ("panel_pixels = [2160, 3840]", "panel_pixels = [1000000000, 3840]"),
         "tilt_bool": ("tilt_deg = 15.0", "tilt_deg = true"),
         "tilt_inf": ("tilt_deg = 15.0", "tilt_deg = inf"),
+        "tilt_120": ("tilt_deg = 15.0", "tilt_deg = 120.0"),
         "distance_text": ("distance = 0.0", 'distance = "x"'),
         "curvature_table": ("curvature_radius = 1.8", "curvature_radius = {}"),
         "offset_bool": ("offset = [0.03, -0.25]", "offset = [true, -0.25]"),
@@ -366,6 +369,9 @@ def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeyp
             assert "got False" in err or "got True" in err, err
         if name.endswith("_typo"):
             assert "unknown key(s)" in err and "known: " in err, err
+        expected = {"tilt_inf": "tilt_deg must be a number of degrees in [-90, 90]", "tilt_120": "tilt_deg must be a number of degrees",
+                    "distance_text": "panel distance must be a number of metres", "curvature_table": "curvature_radius must be a number of metres"}
+        assert expected.get(name, "") in err, err
 
     def exhausted(*args, **kwargs):
         raise RuntimeError("[enforce fail at alloc_cpu.cpp:127] DefaultCPUAllocator: can't allocate memory: you tried to allocate 80000000000 bytes.")
@@ -425,15 +431,30 @@ def test_ctrl_c_in_search_points_to_the_partial_trace(tmp_path, scene_file, caps
     assert _search_interrupted(argparse.Namespace(out=odd)).startswith("no evaluation was made yet; an earlier run's")
 
 
-def test_symbolic_link_loops_and_non_utf8_logdirs_give_one_line(tmp_path, capsys):
+def test_symbolic_link_loops_and_non_utf8_logdirs_give_one_line(tmp_path, scene_file, capsys, monkeypatch):
+    from capture_sim.atomic import staged_files
     from train.learn import summary_writer
 
     (tmp_path / "loop.npz").symlink_to(tmp_path / "loop.npz")
     assert run(["patterns", "make", "--family", "olat", "--M", "2", "--out", str(tmp_path / "loop.npz")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("displex: error:") and "\n" not in err, err
-    with pytest.raises(InputError, match="valid UTF-8"):
+    with pytest.raises(InputError, match="--logdir .*valid UTF-8"):
         summary_writer(tmp_path / os.fsdecode(b"logs\xff"))
+    assert run(["invrender", "--scene", str(scene_file), "--iterations", "2", "--out", str(tmp_path / os.fsdecode(b"inv\xff"))]) == 2
+    assert capsys.readouterr().err.startswith("displex: error: --out ")
+    # A staged output whose destination is a symbolic link replaces the link, whatever it points to.
+    (tmp_path / "staged").mkdir()
+    (tmp_path / "staged" / "a.txt").symlink_to("/dev/null")
+    with staged_files(tmp_path / "staged") as staging:
+        (staging / "a.txt").write_text("new")
+    assert not (tmp_path / "staged" / "a.txt").is_symlink() and (tmp_path / "staged" / "a.txt").read_text() == "new"
+    # Under a strict stdout, a path that is not valid UTF-8 is reported escaped, not after a crash.
+    strict = io.TextIOWrapper(io.BytesIO(), encoding="utf-8", errors="strict")
+    monkeypatch.setattr(sys, "stdout", strict)
+    assert run(["patterns", "make", "--family", "olat", "--M", "2", "--out", str(tmp_path / os.fsdecode(b"p\xff.npz"))]) == 0
+    strict.flush()
+    assert b"p\\udcff.npz" in strict.buffer.getvalue()
 
 
 def test_patterns_make_and_export_round_trip(tmp_path):
@@ -488,8 +509,8 @@ def test_evaluate_json_matches_saved_normal_maps(tmp_path, scene_file):
         ("learned_seeds = [4294967296]\n", "seed"),
         ("scene_size = [128]\n", "list of 2 values"),
         ("heuristics = []\nlearned_counts = []\ninclude_olat_woodham = false\n", "nothing to compare"),
-        ("noise_scales = [1.0, nan]\n", "values in [0, 1e+06]"),
-        ("noise_scales = [1.0, 1e300]\n", "values in [0, 1e+06]"),
+        ("noise_scales = [1.0, nan]\n", "noise_scales value must be a number in [0, 1e+06]"),
+        ("noise_scales = [1.0, 1e300]\n", "noise_scales value must be a number in [0, 1e+06]"),
         ("pattern_counts = [2, 2]\n", "lists a value twice"),
         ("[[external]]\nname = ''\npath = 'patterns/data/ddps/optimized_tri_random_2.npy'\n", "non-empty and distinct"),
         ("[solver]\nmin_distance = 1e30\n", "min_distance must lie in"),

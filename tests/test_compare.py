@@ -115,9 +115,6 @@ def test_config_errors(scenes):
         tiny_config(scenes, solver={"max_alternations": 0})
     with pytest.raises(InputError, match="eval_workers"):
         tiny_config(scenes, eval_workers=0)
-    # A bad [learned] value is refused even where [learned_at.M] overrides it for every M learned.
-    with pytest.raises(InputError, match="steps"):
-        tiny_config(scenes, learned={"steps": 1.5, "val_every": 0}, learned_at={2: {"steps": 2}})
     with pytest.raises(InputError, match="pattern_counts must list at least one M"):
         tiny_config(scenes, pattern_counts=[], rerender_counts=[])
 

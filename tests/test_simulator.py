@@ -216,6 +216,8 @@ def test_review_fixes_for_sensor_rig_and_files(tiny_rig, tmp_path):
         NoiseModel(shot=1e7).scaled(1e6)
     # one specular albedo and roughness for every basis (0-d) broadcast as before
     assert torch.equal(render_olat(*shading[:5], torch.tensor(0.0), torch.tensor(1.0))[0], reference)
+    glossy = render_olat(*shading[:5], torch.full((1,), 0.5), torch.full((1,), 0.3), lambda d: 1.0 / d**2)[1]
+    assert torch.equal(render_olat(*shading[:5], torch.tensor(0.5), torch.tensor(0.3), lambda d: 1.0 / d**2)[1], glossy)
     umask = os.umask(0o022)
     try:
         write_text(tmp_path / "a.txt", "x")

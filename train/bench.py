@@ -349,7 +349,7 @@ def noise_sweep(scenes: list[ScenePixels], noise_scales=SWEEP_NOISE_SCALES, meth
     if not scenes:
         raise InputError("the noise sweep needs at least one scene")
     if not noise_scales:
-        raise InputError("noise scales must be a non-empty list of numbers >= 0")
+        raise InputError("the noise sweep needs at least one noise scale")
     for scale in noise_scales:
         check_noise_scale("noise scale", scale)
     rig = scenes[0].rig

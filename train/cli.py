@@ -485,6 +485,10 @@ def _show_warning(message, category, filename, lineno, file=None, line=None, _de
 def run(argv: list[str] | None = None) -> int:
     """Run one command; returns 0 on success, 2 on bad input (after printing one error line), 130
     when interrupted by Ctrl-C (one line; commands that resume say how)."""
+    # Under a strict stdout (e.g. en_US.UTF-8), a path that is not valid UTF-8 would fail its
+    # report line after the command's work: it is printed escaped instead, as on stderr.
+    if getattr(sys.stdout, "errors", None) == "strict" and hasattr(sys.stdout, "reconfigure"):
+        sys.stdout.reconfigure(errors="backslashreplace")
     with warnings.catch_warnings():  # restores the warning hook afterwards (run is also called in-process)
         warnings.showwarning = _show_warning
         try:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 
 from capture_sim.errors import InputError, check_seed
-from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, MAX_NOISE_SCALE, Rig, rig_file
+from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, Rig, check_noise_scale, rig_file
 from capture_sim.toml_io import load_toml
 from patterns.families import FAMILIES, PRESETS, get_family
 from train.config_io import config_from_dict, config_to_dict, json_value
@@ -170,8 +170,10 @@ class CompareConfig:
         for item in self.external:
             if not Path(item.path).is_file():
                 raise InputError(f"external pattern file {item.name!r} not found: {item.path}")
-        if not self.noise_scales or not all(0 <= s <= MAX_NOISE_SCALE for s in self.noise_scales):
-            raise InputError(f"noise_scales must list values in [0, {MAX_NOISE_SCALE:g}], got {list(self.noise_scales)}")
+        if not self.noise_scales:
+            raise InputError("noise_scales must list at least one noise scale")
+        for scale in self.noise_scales:
+            check_noise_scale("noise_scales value", scale)
         if self.default_noise not in self.noise_scales:
             raise InputError(f"default_noise {self.default_noise} must be one of noise_scales {list(self.noise_scales)}")
         for name in self.heuristics:
@@ -193,11 +195,7 @@ class CompareConfig:
             raise InputError("two [[search]] runs have the same family, M and algorithm")
         if len({item.name for item in self.external}) != len(self.external):
             raise InputError("external pattern names must be unique")
-        # Every learning and search config is built now, so a bad value fails before any work; the
-        # [learned] table on its own too (its values may be overridden at every M learned now, but
-        # a wrong one is still a mistake in the file).
-        if self.learned:
-            config_from_dict(TrainConfig, {**self.learned, "num_patterns": max(self.pattern_counts)}, source="learned")
+        # Every learning and search config is built now, so a bad value fails before any work.
         for count in self.learned_pattern_counts():
             self.train_config(count, self.seeds_for(count)[0])
         for count in self.rerender_counts:

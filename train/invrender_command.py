@@ -199,7 +199,7 @@ class _TensorBoard:
             return
         from torch.utils.tensorboard import SummaryWriter
 
-        name = tensorboard_folder_name(folder / TENSORBOARD_FOLDER)
+        name = str(folder / TENSORBOARD_FOLDER)  # valid UTF-8: ``check_out_folder``
         (folder / TENSORBOARD_FOLDER).mkdir()
         (folder / TENSORBOARD_FOLDER / TENSORBOARD_MARKER).write_text("written by displex invrender\n")
         self.writer = SummaryWriter(log_dir=name)
@@ -217,7 +217,8 @@ class _TensorBoard:
 
 def check_out_folder(out: Path) -> None:
     """Refuse, before any work, an ``--out`` whose tensorboard folder invrender did not write (a
-    rerun replaces it whole) or that is not a folder."""
+    rerun replaces it whole), that is not a folder, or whose name is not valid UTF-8 (TensorBoard)."""
+    tensorboard_folder_name(out, "--out")
     board = out / TENSORBOARD_FOLDER
     if board.exists() and not (board.is_dir() and (board / TENSORBOARD_MARKER).is_file()):
         raise InputError(f"{board} exists and was not written by displex invrender (a rerun replaces that folder); "

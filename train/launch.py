@@ -8,10 +8,6 @@ import sys
 
 def entrypoint() -> None:
     """Console-script entry point."""
-    # A path that is not valid UTF-8 (a surrogate-escaped byte) is printed escaped, as on stderr,
-    # instead of failing after the command's work under a strict locale.
-    if hasattr(sys.stdout, "reconfigure"):
-        sys.stdout.reconfigure(errors="backslashreplace")
     try:
         from train.cli import run
     except KeyboardInterrupt:

@@ -477,7 +477,7 @@ def summary_writer(logdir: Path | None):
     """A TensorBoard writer for the folder ``logdir`` (created if needed), or None without one."""
     if logdir is None:
         return None
-    name = tensorboard_folder_name(logdir)
+    name = tensorboard_folder_name(logdir, "--logdir")
     if Path(logdir).exists() and not Path(logdir).is_dir():
         raise InputError(f"--logdir {logdir} is a file, not a folder")
     # The writer writes from a background thread, where a failure would print a thread traceback:
@@ -492,14 +492,15 @@ def summary_writer(logdir: Path | None):
     return SummaryWriter(name)
 
 
-def tensorboard_folder_name(folder: Path) -> str:
-    """``folder`` as the text TensorBoard's writer takes; ``InputError`` for a name that is not valid
-    UTF-8 (the writer fails on it from inside its own thread)."""
+def tensorboard_folder_name(folder: Path, what: str) -> str:
+    """``folder`` as the text TensorBoard's writer takes; ``InputError`` naming ``what`` (the option
+    the user set, e.g. ``--logdir``) for a name that is not valid UTF-8 (the writer fails on it from
+    inside its own thread)."""
     name = str(folder)
     try:
         name.encode("utf-8")
     except UnicodeEncodeError:
-        raise InputError(f"{one_line(name)}: TensorBoard logs need a folder name that is valid UTF-8; choose another folder") from None
+        raise InputError(f"{what} {one_line(name)}: its TensorBoard logs need a folder name that is valid UTF-8; choose another") from None
     return name
 
 

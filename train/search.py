@@ -42,7 +42,7 @@ from tqdm import tqdm
 from capture_sim.atomic import exclusive_output, staged_files, write_json, write_text
 from capture_sim.errors import DisplexWarning, InputError, check_seed
 from capture_sim.rig import DEFAULT_RIG, check_noise_scale, load_rig
-from patterns.families import MAX_SHARPNESS, PRESETS, default_vector, get_family
+from patterns.families import PRESETS, check_sharpness, default_vector, get_family
 from patterns.io import save_patterns
 from reconstruct.photometric_stereo import PSConfig, solve_ps
 from train.capture import capture_scene
@@ -132,8 +132,7 @@ class SearchConfig:
             raise InputError(f"initial_step must lie in (0, 1], got {self.initial_step!r}")
         if self.pixels_per_scene < 0:
             raise InputError(f"pixels_per_scene must be >= 0 (0 = every pixel), got {self.pixels_per_scene!r}")
-        if not 0 < self.sharpness <= MAX_SHARPNESS:
-            raise InputError(f"sharpness must be positive and at most {MAX_SHARPNESS:g} per cell, got {self.sharpness}")
+        check_sharpness(self.sharpness)
 
 
 # ---------------------------------------------------------------------------------------------
