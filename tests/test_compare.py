@@ -127,6 +127,8 @@ def test_an_output_folder_holding_the_source_package_is_refused(scenes, tmp_path
     assert sorted(path.name for path in (tmp_path / "patterns").iterdir()) == ["__init__.py"]
     # A file where the output folder goes fails before the work, not when the results are written.
     (tmp_path / "afile").write_text("x")
+    with pytest.raises(InputError, match="compare output folder .*valid UTF-8"):
+        run_compare(tiny_config(scenes, learned_counts=[]), tmp_path / os.fsdecode(b"out\xff"), progress=False)
     with pytest.raises(InputError, match="afile is a file, not a folder"):
         run_compare(tiny_config(scenes, learned_counts=[]), tmp_path / "afile", progress=False)
 

@@ -42,12 +42,12 @@ from capture_sim.scene import scene_paths
 from capture_sim.synth import GENERATOR
 from patterns.io import save_patterns
 from train.capture import scene_exposure
-from train.evaluate import EvalSettings, evaluate_scene
-from train.scene_pixels import ScenePixels, fixed_pixel_subsets, scene_pixels
-from train.scene_sets import resolve_scenes
-
 from train.compare_config import CompareConfig, compare_config_to_dict, load_compare_config, rig_exposure_ms
 from train.compare_methods import Method, collect_methods
+from train.evaluate import EvalSettings, evaluate_scene
+from train.learn import tensorboard_folder_name
+from train.scene_pixels import ScenePixels, fixed_pixel_subsets, scene_pixels
+from train.scene_sets import resolve_scenes
 
 SUMMARY_METRICS = ("mae", "median", "under_5", "under_10", "under_20", "under_30", "invalid_fraction", "exposure", "seconds")
 """Per-scene metrics averaged over the test scenes (each scene weighs the same)."""
@@ -345,6 +345,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     # A file where the folder goes, or a folder nothing can be written into: refused now, not
     # when the results are written after the work.
     refuse_overwriting([("results", out_dir / "results.json")], [])
+    tensorboard_folder_name(out_dir, "compare output folder")  # its learning runs log under tensorboard/
     pattern_dir = out_dir / "patterns"
     if (pattern_dir / "__init__.py").exists():  # e.g. out = "." in the repository root
         raise InputError(f"compare output folder {out_dir} holds a Python package patterns/ (the source tree?), "

@@ -13,8 +13,8 @@ from capture_sim.errors import InputError, check_seed
 from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, Rig, check_noise_scale, rig_file
 from capture_sim.toml_io import load_toml
 from patterns.families import FAMILIES, PRESETS, get_family
-from train.config_io import config_from_dict, config_to_dict, json_value
 from reconstruct.photometric_stereo import PSConfig
+from train.config_io import config_from_dict, config_to_dict, json_value
 from train.learn import TrainConfig, names_pattern_file
 from train.search import SearchConfig
 

@@ -14,8 +14,8 @@ from capture_sim.atomic import write_json
 from capture_sim.errors import DisplexWarning, InputError
 from patterns.families import get_family, make_patterns
 from patterns.io import load_patterns
-from train.config_io import config_to_dict
 from train.compare_config import CompareConfig, SearchRun
+from train.config_io import config_to_dict
 from train.learn import TrainConfig, auto_init_family, input_fingerprints, train_patterns
 from train.search import run_search, trace_chart_path
 
