@@ -155,6 +155,8 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list 
         for path in [folder / relative for relative in files] + list(obsolete or ()):
             if not Path(path).is_symlink():  # a rename replaces a link itself, whatever it points to
                 check_replaceable(path)
+            if Path(path).parent.is_symlink() and not Path(path).parent.is_dir():
+                raise InputError(f"cannot write {path}: {Path(path).parent} is a broken symbolic link")
         if before_moves is not None:
             before_moves()
         for name in last:

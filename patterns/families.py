@@ -56,6 +56,7 @@ def check_sharpness(sharpness, name: str = "sharpness") -> None:
     if not 0 < sharpness <= MAX_SHARPNESS:
         raise InputError(f"{name} must be positive and at most {MAX_SHARPNESS:g} per cell, got {sharpness}")
 
+
 PRESETS = ("default", "ddps")
 
 PRESET_LEVELS = {"default": (0.0, 1.0), "ddps": (0.1, 0.9)}

@@ -454,7 +454,15 @@ def test_symbolic_link_loops_and_non_utf8_logdirs_give_one_line(tmp_path, scene_
     monkeypatch.setattr(sys, "stdout", strict)
     assert run(["patterns", "make", "--family", "olat", "--M", "2", "--out", str(tmp_path / os.fsdecode(b"p\xff.npz"))]) == 0
     strict.flush()
-    assert b"p\\udcff.npz" in strict.buffer.getvalue()
+    assert b"p\\udcff.npz" in strict.buffer.getvalue() and strict.errors == "strict"  # restored afterwards
+    # A subfolder that is a broken link is refused before anything moves.
+    (tmp_path / "staged" / "sub").symlink_to(tmp_path / "missing")
+    with pytest.raises(InputError, match="broken symbolic link"):
+        with staged_files(tmp_path / "staged", last=("a.txt",)) as staging:
+            (staging / "sub").mkdir()
+            (staging / "sub" / "b.txt").write_text("x")
+            (staging / "a.txt").write_text("newer")
+    assert (tmp_path / "staged" / "a.txt").read_text() == "new"
 
 
 def test_patterns_make_and_export_round_trip(tmp_path):

@@ -115,6 +115,8 @@ def test_config_errors(scenes):
         tiny_config(scenes, solver={"max_alternations": 0})
     with pytest.raises(InputError, match="eval_workers"):
         tiny_config(scenes, eval_workers=0)
+    with pytest.raises(InputError, match="learned: unknown key\\(s\\) stepz"):  # even with nothing learned
+        tiny_config(scenes, learned={"stepz": 5}, learned_counts=[], rerender_counts=[])
     with pytest.raises(InputError, match="pattern_counts must list at least one M"):
         tiny_config(scenes, pattern_counts=[], rerender_counts=[])
 
@@ -128,7 +130,7 @@ def test_an_output_folder_holding_the_source_package_is_refused(scenes, tmp_path
     # A file where the output folder goes fails before the work, not when the results are written.
     (tmp_path / "afile").write_text("x")
     with pytest.raises(InputError, match="compare output folder .*valid UTF-8"):
-        run_compare(tiny_config(scenes, learned_counts=[]), tmp_path / os.fsdecode(b"out\xff"), progress=False)
+        run_compare(tiny_config(scenes), tmp_path / os.fsdecode(b"out\xff"), progress=False)
     with pytest.raises(InputError, match="afile is a file, not a folder"):
         run_compare(tiny_config(scenes, learned_counts=[]), tmp_path / "afile", progress=False)
 

@@ -486,9 +486,16 @@ def run(argv: list[str] | None = None) -> int:
     """Run one command; returns 0 on success, 2 on bad input (after printing one error line), 130
     when interrupted by Ctrl-C (one line; commands that resume say how)."""
     # Under a strict stdout (e.g. en_US.UTF-8), a path that is not valid UTF-8 would fail its
-    # report line after the command's work: it is printed escaped instead, as on stderr.
-    if getattr(sys.stdout, "errors", None) == "strict" and hasattr(sys.stdout, "reconfigure"):
-        sys.stdout.reconfigure(errors="backslashreplace")
+    # report line after the command's work: it is printed escaped instead, as on stderr, and the
+    # stream is restored afterwards (run is also called in-process).
+    stdout = sys.stdout
+    relaxed = False
+    if getattr(stdout, "errors", None) == "strict" and hasattr(stdout, "reconfigure"):
+        try:
+            stdout.reconfigure(errors="backslashreplace")
+            relaxed = True
+        except (OSError, ValueError):  # io.UnsupportedOperation: a stream already read from
+            pass
     with warnings.catch_warnings():  # restores the warning hook afterwards (run is also called in-process)
         warnings.showwarning = _show_warning
         try:
@@ -496,6 +503,9 @@ def run(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:  # before a command started (building the parser, importing torch)
             print("\ndisplex: interrupted", file=sys.stderr)
             return 130
+        finally:
+            if relaxed:
+                stdout.reconfigure(errors="strict")
 
 
 def _run(argv: list[str] | None) -> int:

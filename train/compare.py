@@ -345,7 +345,8 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     # A file where the folder goes, or a folder nothing can be written into: refused now, not
     # when the results are written after the work.
     refuse_overwriting([("results", out_dir / "results.json")], [])
-    tensorboard_folder_name(out_dir, "compare output folder")  # its learning runs log under tensorboard/
+    if config.learned_pattern_counts() or config.rerender_counts or config.search:  # these log under tensorboard/
+        tensorboard_folder_name(out_dir, "compare output folder")
     pattern_dir = out_dir / "patterns"
     if (pattern_dir / "__init__.py").exists():  # e.g. out = "." in the repository root
         raise InputError(f"compare output folder {out_dir} holds a Python package patterns/ (the source tree?), "

@@ -195,7 +195,12 @@ class CompareConfig:
             raise InputError("two [[search]] runs have the same family, M and algorithm")
         if len({item.name for item in self.external}) != len(self.external):
             raise InputError("external pattern names must be unique")
-        # Every learning and search config is built now, so a bad value fails before any work.
+        # Every learning and search config is built now, so a bad value fails before any work; a
+        # misspelt [learned] key fails even where nothing is learned (its values are checked merged
+        # with each M's table, where they are used).
+        unknown = sorted(set(self.learned) - {item.name for item in dataclasses.fields(TrainConfig)})
+        if unknown:
+            raise InputError(f"learned: unknown key(s) {', '.join(unknown)}")
         for count in self.learned_pattern_counts():
             self.train_config(count, self.seeds_for(count)[0])
         for count in self.rerender_counts:
