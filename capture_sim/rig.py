@@ -373,9 +373,9 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
     keys are errors."""
     _check_rig_keys(config, default_name)
     try:
-        cam = {key: _number(f"camera {key}", config["camera"][key]) for key in ("fx", "fy", "cx", "cy")}
+        focal = {key: _number(f"camera {key}", config["camera"][key]) for key in ("fx", "fy", "cx", "cy")}
         camera = Camera(
-            K_cam=_as_nested(np.array([[cam["fx"], 0.0, cam["cx"]], [0.0, cam["fy"], cam["cy"]], [0.0, 0.0, 1.0]])),
+            K_cam=_as_nested(np.array([[focal["fx"], 0.0, focal["cx"]], [0.0, focal["fy"], focal["cy"]], [0.0, 0.0, 1.0]])),
             height=_whole_number("camera height", config["camera"]["height"]),
             width=_whole_number("camera width", config["camera"]["width"]),
             exposure_ms=config["camera"].get("exposure_ms"),

@@ -279,8 +279,8 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
     try:
         listed = np.asarray(manifest["patterns"])
     except ValueError:  # lists of uneven lengths
-        listed = np.zeros(0)
-    if listed.dtype.kind not in "iuf" or listed.shape != (len(pattern_frames), rows, cols, 3) or not np.isfinite(listed).all():
+        listed = None
+    if listed is None or listed.dtype.kind not in "iuf" or listed.shape != (len(pattern_frames), rows, cols, 3) or not np.isfinite(listed).all():
         raise InputError(f"{frames_dir}: manifest patterns are not a finite {len(pattern_frames)} x {rows} x {cols} x 3 array of numbers")
     row_bounds = superpixel_boundaries(rows, height)
     col_bounds = superpixel_boundaries(cols, width)
