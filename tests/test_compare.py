@@ -117,6 +117,8 @@ def test_config_errors(scenes):
         tiny_config(scenes, eval_workers=0)
     with pytest.raises(InputError, match="learned: unknown key\\(s\\) stepz"):  # even with nothing learned
         tiny_config(scenes, learned={"stepz": 5}, learned_counts=[], rerender_counts=[])
+    with pytest.raises(InputError, match="learned: steps"):  # a shared value that every M's table overrides
+        tiny_config(scenes, learned={"steps": -1}, learned_at={"2": {"steps": 3}})
     with pytest.raises(InputError, match="pattern_counts must list at least one M"):
         tiny_config(scenes, pattern_counts=[], rerender_counts=[])
 

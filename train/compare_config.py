@@ -201,6 +201,10 @@ class CompareConfig:
         unknown = sorted(set(self.learned) - {item.name for item in dataclasses.fields(TrainConfig)})
         if unknown:
             raise InputError(f"learned: unknown key(s) {', '.join(unknown)}")
+        learned_counts = self.learned_pattern_counts() or self.rerender_counts
+        if learned_counts:
+            # [learned] alone too: a value that every [learned_at.M] table overrides is still wrong.
+            self._train_config(self.learned, learned_counts[0], self.seeds_for(learned_counts[0])[0], False, source="learned")
         for count in self.learned_pattern_counts():
             self.train_config(count, self.seeds_for(count)[0])
         for count in self.rerender_counts:
@@ -220,11 +224,16 @@ class CompareConfig:
         """The TrainConfig of the learning run at M = ``num_patterns`` with ``seed``; ``rerender``
         sets its re-rendering weight to ``rerender_weight`` (else 0: normal loss only)."""
         values = {**self.learned, **self.learned_at.get(num_patterns, {})}
+        return self._train_config(values, num_patterns, seed, rerender, source=f"learned (M = {num_patterns})")
+
+    def _train_config(self, values: dict, num_patterns: int, seed: int, rerender: bool, source: str) -> TrainConfig:
+        """TrainConfig from the override ``values`` plus the fields the comparison sets."""
+        values = dict(values)
         values.update(num_patterns=num_patterns, seed=seed, rig=self.rig, scenes=list(self.train_scenes),
                       val_scenes=list(self.test_scenes), scene_size=list(self.scene_size), scene_seed=self.scene_seed,
                       noise_scale=self.default_noise)
         values["rerender_weight"] = self.rerender_weight if rerender else 0.0
-        return config_from_dict(TrainConfig, values, source=f"learned (M = {num_patterns})")
+        return config_from_dict(TrainConfig, values, source=source)
 
     def ps_config(self) -> PSConfig:
         """Solver settings of every evaluation (PSConfig defaults updated by ``solver``)."""
