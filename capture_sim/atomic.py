@@ -45,7 +45,7 @@ def _check_writable(path: Path, probed: set) -> None:
     """Raise ``InputError`` unless a file can be created in the nearest existing folder of
     ``path`` (a read-only or pseudo file system such as /proc would otherwise fail only when the
     output is written, after the work). ``probed`` collects the folders already tried."""
-    folder = _nearest_existing_folder(path)
+    folder = _nearest_existing(path.parent)
     if folder is None or folder in probed:
         return
     probed.add(folder)
@@ -72,14 +72,25 @@ def check_replaceable(path: str | Path) -> None:
     path = Path(path)
     if path.exists() and not path.is_file():
         raise InputError(f"cannot write {path}: it exists and is not a regular file")
-    folder = _nearest_existing_folder(path)
-    if folder is not None and not folder.is_dir():
-        raise InputError(f"cannot write {path}: {folder} is a file, not a folder")
+    _check_folder_place(path.parent, f"cannot write {path}")
 
 
-def _nearest_existing_folder(path: Path) -> Path | None:
-    """The nearest existing parent of ``path``; it may be a file standing where a folder should be."""
-    return next((parent for parent in Path(path).absolute().parents if parent.exists()), None)
+def _check_folder_place(folder: Path, failure: str) -> None:
+    """Raise ``InputError`` (``failure``, then why) if ``folder``, or the nearest of its parents
+    that exists, is not a folder: a file, or a broken symbolic link, where creating the missing
+    folders would fail with a misleading 'File exists'."""
+    found = _nearest_existing(folder)
+    if found is None or found.is_dir():
+        return
+    if found.is_symlink() and not found.exists():
+        raise InputError(f"{failure}: {found} is a broken symbolic link (to {os.readlink(found)})")
+    raise InputError(f"{failure}: {found} is a file, not a folder")
+
+
+def _nearest_existing(path: Path) -> Path | None:
+    """``path`` or its nearest parent that exists; a broken symbolic link counts (it stands there)."""
+    path = Path(path).absolute()
+    return next((place for place in (path, *path.parents) if os.path.lexists(place)), None)
 
 
 def check_output_folder(path: str | Path, command: str) -> None:
@@ -142,6 +153,7 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list 
     (e.g. to mark the folder as being replaced).
     """
     folder = Path(folder)
+    _check_folder_place(folder, f"cannot write into {folder}")
     created = _missing_folders(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -155,8 +167,6 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list 
         for path in [folder / relative for relative in files] + list(obsolete or ()):
             if not Path(path).is_symlink():  # a rename replaces a link itself, whatever it points to
                 check_replaceable(path)
-            if Path(path).parent.is_symlink() and not Path(path).parent.is_dir():
-                raise InputError(f"cannot write {path}: {Path(path).parent} is a broken symbolic link")
         if before_moves is not None:
             before_moves()
         for name in last:
@@ -180,7 +190,7 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list 
 
 def _missing_folders(folder: Path) -> list[Path]:
     """``folder`` and those of its parents that do not exist, deepest first."""
-    return [path for path in (folder, *folder.parents) if not path.exists()]
+    return [path for path in (folder, *folder.parents) if not os.path.lexists(path)]
 
 
 def _remove_empty(folders: list[Path]) -> None:

@@ -463,6 +463,13 @@ def test_symbolic_link_loops_and_non_utf8_logdirs_give_one_line(tmp_path, scene_
             (staging / "sub" / "b.txt").write_text("x")
             (staging / "a.txt").write_text("newer")
     assert (tmp_path / "staged" / "a.txt").read_text() == "new"
+    # An output under a broken link says so, not 'File exists' (a file, a folder, a lock).
+    for args in (["patterns", "make", "--family", "olat", "--M", "2", "--out", str(tmp_path / "staged" / "sub" / "p.npz")],
+                 ["scenes", "synth", "--size", "8x9", "--out", str(tmp_path / "staged" / "sub" / "deeper")],
+                 ["train", "--M", "2", "--steps", "1", "--out", str(tmp_path / "staged" / "sub" / "t.npz")]):
+        assert run(args) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.endswith(f"{tmp_path / 'staged' / 'sub'} is a broken symbolic link (to {tmp_path / 'missing'})"), err
 
 
 def test_patterns_make_and_export_round_trip(tmp_path):

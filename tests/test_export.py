@@ -306,7 +306,7 @@ def test_export_keeps_frame_files_it_did_not_write(tmp_path, small_rig):
     with pytest.raises(InputError, match="pattern_001.png: it exists and is not a regular file"):
         export_frames(_patterns(small_rig, 3), small_rig, interrupted)
     assert {path.name: path.read_bytes() for path in interrupted.iterdir() if path.is_file()} == before
-    with pytest.raises(InputError, match="cannot write into .*black.png/inside: Not a directory"):
+    with pytest.raises(InputError, match="cannot write into .*black.png/inside: .*black.png is a file, not a folder"):
         export_frames(_patterns(small_rig, 1), small_rig, theirs / "black.png" / "inside")
 
 
