@@ -36,7 +36,7 @@ from typing import Callable
 
 import torch
 
-from capture_sim.errors import InputError, check_array
+from capture_sim.errors import InputError, check_array, check_field_types
 from reconstruct.basis_render import NORM_FLOOR, RENDER_CHUNK_PIXELS, EmissionPlan, ShadingGeometry, render_under_patterns, shade_and_contract, shading_geometry
 from reconstruct.fit_start import InitialEstimate, cluster_albedo, grid_neighbours, initial_estimate, least_squares_albedos
 
@@ -76,7 +76,7 @@ class FitConfig:
     """lambda_tv: weight of the normals' total variation (mean L1 difference between neighbours)
     relative to the RMSE in full-scale units."""
     far_field: bool = False
-    """Shade with the centroid's light directions and distances (see module docstring)."""
+    """Shade with the centroid's light directions and distances (see ``reconstruct.basis_render``)."""
     initial_specular: float = 0.5
     """Starting rho_s of every basis when ``least_squares_init`` is off, in the fit's albedo units
     (the scene's, or scaled to order one by ``albedo_unit``)."""
@@ -118,16 +118,21 @@ class FitConfig:
     """Seed of k-means and of the pixel batches."""
 
     def __post_init__(self):
+        check_field_types(self)  # whole numbers where ints go, and no NaN, which every comparison below lets through
         if self.num_basis < 1:
             raise InputError(f"num_basis must be at least 1, got {self.num_basis}")
         if self.iterations < 0 or self.batch_pixels < 1:
             raise InputError("iterations must be >= 0 and batch_pixels >= 1")
-        if not all(value > 0 for value in (self.normal_lr, self.weight_lr, self.brdf_lr, self.specular_lr, self.initial_specular)):
-            raise InputError("learning rates and initial_specular must be positive")
+        if not all(0 < value < math.inf for value in (self.normal_lr, self.weight_lr, self.brdf_lr, self.specular_lr, self.initial_specular)):
+            raise InputError("learning rates and initial_specular must be positive and finite")
         if not 0 < self.final_lr_fraction <= 1:
             raise InputError(f"final_lr_fraction must be in (0, 1], got {self.final_lr_fraction}")
-        if self.tv_weight < 0:
-            raise InputError(f"tv_weight must be non-negative, got {self.tv_weight}")
+        if not 0 <= self.tv_weight < math.inf:
+            raise InputError(f"tv_weight must be non-negative and finite, got {self.tv_weight}")
+        if not 0 <= self.specular_floor <= 1:
+            raise InputError(f"specular_floor must be in [0, 1] (a fraction of initial_specular), got {self.specular_floor}")
+        if not 0 < self.saturation_threshold <= 1:
+            raise InputError(f"saturation_threshold must be in (0, 1], got {self.saturation_threshold}")
         if not 0 < self.min_roughness < self.initial_roughness < 1:
             raise InputError("need 0 < min_roughness < initial_roughness < 1")
         if not all(0 <= at < 1 for at in self.normal_search_at):

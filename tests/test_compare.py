@@ -612,6 +612,17 @@ def test_specular_free_section_states_a_skipped_or_disabled_check():
     assert specular_free_section(dict(results, specular_free={"enabled": False}), summary, summary["rows"]) == []
     lines = specular_free_section(dict(results, specular_free={"enabled": True, "skipped": "scene x has no separate diffuse stack"}), summary, summary["rows"])
     assert "Skipped: scene x has no separate diffuse stack." in lines
+    # The share is '-' exactly where the tables say "(all invalid)" both ways, not already at 99%.
+    for method in results["methods"]:
+        method["specular_free"] = dict(method["evaluations"][0], mae=method["evaluations"][0]["mae"] / 2)
+    for invalid, share in ((0.995, "50"), (1.0, "-")):
+        for method in results["methods"]:
+            for evaluation in (*method["evaluations"], method["specular_free"]):
+                evaluation["invalid_fraction"] = invalid
+        summary = summary_tables(results)
+        lines = specular_free_section(dict(results, specular_free={"enabled": True}), summary, summary["rows"])
+        table = "\n".join(lines).splitlines()
+        assert any(line.startswith("| a | 2 |") and line.rstrip(" |").endswith(f" {share}") for line in table), table
 
 
 def test_rig_file_in_a_compare_config_is_relative_to_the_repository(tmp_path):

@@ -378,7 +378,10 @@ def test_normal_search_finds_a_far_start_and_never_worsens():
 
 def test_fit_config_rejects_bad_settings():
     for bad in (dict(num_basis=0), dict(iterations=-1), dict(normal_lr=0.0), dict(final_lr_fraction=0.0),
-                dict(initial_roughness=0.01), dict(normal_search_at=(1.5,)), dict(search_max_fraction=0.0)):
+                dict(initial_roughness=0.01), dict(normal_search_at=(1.5,)), dict(search_max_fraction=0.0),
+                # NaN passes every comparison: it turned the fit's output NaN or its regulariser off
+                dict(specular_floor=math.nan), dict(saturation_threshold=math.nan), dict(tv_weight=math.nan),
+                dict(specular_floor=-0.1), dict(saturation_threshold=0.0), dict(normal_lr=math.inf), dict(iterations=2.5)):
         with pytest.raises(InputError):
             FitConfig(**bad)
 
@@ -680,7 +683,7 @@ def test_invrender_warns_when_no_pixel_is_solvable_and_never_overwrites_inputs(t
 
 
 @pytest.mark.parametrize("bad", [dict(basis="9"), dict(basis="x"), dict(iterations=0), dict(noise="loud"), dict(geometry="sideways"),
-                                 dict(exposure="-1")])
+                                 dict(exposure="-1"), dict(tv_weight=math.nan), dict(tv_weight=math.inf)])
 def test_run_invrender_bad_settings_raise(scene_file, bad):
     from train.invrender_command import InvRenderConfig, run_invrender
 

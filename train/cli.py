@@ -132,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
     make.add_argument("--family", required=True, help="family name (see `displex patterns list`)")
     make.add_argument("--M", type=int, required=True, dest="num_patterns", help="number of patterns")
     make.add_argument("--out", type=_pattern_output, required=True, help="pattern file to write (.npz)")
-    make.add_argument("--preset", default="default", help="'default' (off level 0, on level 1) or 'ddps' (the published 0.1/0.9 levels; tri_gradient and the random families have no levels and ignore it)")
+    make.add_argument("--preset", default="default", help="'default' (off level 0, on level 1) or 'ddps' (the published 0.1/0.9 levels; tri_gradient keeps its published 0/1 levels in both, and the random families have no levels)")
     make.add_argument("--seed", type=int, default=0, help="seed of the random families")
     make.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
     make.set_defaults(handler=_patterns_make)

@@ -1,14 +1,14 @@
 """`displex invrender`: inverse rendering of one scene, relighting evaluation, model selection, outputs.
 
 Data (all from the scene's OLAT stack O, DESIGN sections 3 and 4):
-- lights are split 5:1 into fit and held-out test lights (``reconstruct.relight.split_lights``);
+- lights are split 5:1 into fit and held-out test lights (every ``TEST_EVERY``-th held out) (``reconstruct.relight.split_lights``);
 - OLAT exposure e_olat is auto exposure over all K noise-free OLAT images of the mask; the
   held-out truth is e_olat * O[test] (noise-free), and relit images use the same e_olat;
 - ``patterns = "olat"``: the fit captures are the fit lights' OLAT images, noisy (rig model)
   unless ``noise = "off"``, with one-hot emission e_olat;
 - a pattern file: the fit captures are simulated captures of the patterns (``simulate``, backlight
   and gamma included, exposure auto unless fixed, noise as above).
-Model selection (``basis = "auto"``) validates on noisy OLAT images of every 5th fit light; in
+Model selection (``basis = "auto"``) validates on noisy OLAT images of every ``VALIDATION_EVERY``-th fit light (5th); in
 OLAT mode its candidates are fitted on the other fit lights, in pattern mode on the pattern
 captures (at a rig, the validation images are a few extra OLAT captures). The test lights are
 never used for any decision.
@@ -31,7 +31,7 @@ import torch
 from tqdm import tqdm
 
 from capture_sim.atomic import save_npy, staged_files, write_json
-from capture_sim.errors import DisplexWarning, InputError, check_seed, check_thread_count
+from capture_sim.errors import DisplexWarning, InputError, check_field_types, check_seed, check_thread_count
 from capture_sim.geometry import pixel_rays
 from capture_sim.png import write_png
 from capture_sim.rig import DEFAULT_RIG, load_rig
@@ -109,6 +109,8 @@ class InvRenderConfig:
 
     def validate(self) -> None:
         """Raise ``InputError`` with one line for a bad setting."""
+        check_thread_count(self.threads)  # first: its message is the one `displex --threads` gives
+        check_field_types(self)
         self.num_basis()
         if self.iterations < 1:
             raise InputError(f"--iterations must be at least 1, got {self.iterations}")
@@ -116,10 +118,9 @@ class InvRenderConfig:
             raise InputError(f"noise must be one of {', '.join(NOISE_CHOICES)}, got {self.noise!r}")
         if self.geometry not in GEOMETRY_CHOICES:
             raise InputError(f"geometry must be one of {', '.join(GEOMETRY_CHOICES)}, got {self.geometry!r}")
-        if self.batch_pixels < 1 or self.tv_weight < 0:
-            raise InputError("batch_pixels must be positive and tv_weight non-negative")
+        if self.batch_pixels < 1 or not 0 <= self.tv_weight < math.inf:
+            raise InputError("batch_pixels must be positive and tv_weight non-negative and finite")
         check_seed("--seed", self.seed)
-        check_thread_count(self.threads)
         parse_exposure(str(self.exposure))
         if self.patterns == "olat" and str(self.exposure) not in ("rig", "auto"):
             raise InputError(f"--exposure {self.exposure} applies to pattern captures; OLAT captures are always auto-exposed (drop it or pass --patterns)")
@@ -144,7 +145,7 @@ class _Data:
     emission: torch.Tensor  # (M, K, 3)
     exposure: float  # exposure of the fit captures
     olat_exposure: float
-    olat_captures: torch.Tensor  # (K_fit, N, 3) noisy OLAT captures of the fit lights
+    olat_captures: torch.Tensor  # (K_fit, N, 3) OLAT captures of the fit lights (noise-free with noise 'off')
     test_truth: torch.Tensor  # (K_test, N, 3) noise-free e_olat * O[test]
     describe: dict
 
@@ -546,10 +547,16 @@ def _relit_figure(path: Path, relit, truth, test_lights, transport, output: dict
             ax.set_title(title, fontsize=9)
             ax.set_axis_off()
     fig.suptitle(f"Held-out relighting: PSNR {output['psnr']:.2f} dB, SSIM {output['ssim']:.4f}")
-    fig.text(0.5, 0.005, "Every 6th superpixel held out; exposed OLAT images (auto exposure), display gamma 1/2.2; error is the "
+    fig.text(0.5, 0.005, f"Every {_ordinal(TEST_EVERY)} superpixel held out; exposed OLAT images (auto exposure), display gamma 1/2.2; error is the "
              "channel-mean absolute difference times 10 (1 = 0.1 of full scale).", ha="center", fontsize=8, wrap=True)
     fig.tight_layout(rect=(0, 0.04, 1, 1))
     save_figure(fig, path)
+
+
+def _ordinal(number: int) -> str:
+    """'5th', '6th', '2nd': the light splits' strides in figure captions."""
+    suffix = "th" if 10 <= number % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(number % 10, "th")
+    return f"{number}{suffix}"
 
 
 def _selection_chart(path: Path, selection, selection_config: SelectionConfig) -> None:
@@ -570,7 +577,7 @@ def _selection_chart(path: Path, selection, selection_config: SelectionConfig) -
     ax.xaxis.get_major_locator().set_params(integer=True)
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    fig.text(0.5, 0.005, f"Each candidate fitted for {selection_config.iterations} steps, scored on every 5th fit light; "
+    fig.text(0.5, 0.005, f"Each candidate fitted for {selection_config.iterations} steps, scored on every {_ordinal(VALIDATION_EVERY)} fit light; "
              + selection.rule, ha="center", fontsize=7, wrap=True)
     fig.tight_layout(rect=(0, 0.07, 1, 1))
     save_figure(fig, path)

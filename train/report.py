@@ -545,8 +545,7 @@ def specular_free_section(results: dict, summary: dict, rows: list[dict]) -> lis
         other = free_rows.get((row["series"], row["M"]))
         if other is None:
             continue
-        all_invalid = min(row["invalid_fraction"], other["invalid_fraction"]) > 0.99
-        share = None if all_invalid or not row["mae"] > 0 else 100.0 * (1.0 - other["mae"] / row["mae"])
+        share = None if (all_invalid(row) and all_invalid(other)) or not row["mae"] > 0 else 100.0 * (1.0 - other["mae"] / row["mae"])
         body.append([row["label"], str(row["M"]), _fmt(row["mae"]), _fmt(other["mae"]), _fmt(share, 0)])
     lines += [_table(["method", "M", "MAE (deg)", "specular-free MAE (deg)", "specular share (%)"], body), ""]
     with_specular = {c["M"]: c for c in summary["learned_vs_heuristic"] if math.isclose(c["noise_scale"], default)}

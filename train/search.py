@@ -108,7 +108,8 @@ class SearchConfig:
     """Seed of the default synthetic scenes."""
     sharpness: float = 4.0
     """Edge slope (1/cells) of split and block edges during the search and in the written file;
-    low enough for useful gradients and a smooth objective (the families' default is 40)."""
+    low enough for useful gradients and a smooth objective (the families' default,
+    ``patterns.families.DEFAULT_SHARPNESS``, makes binary edges)."""
     pixels_per_scene: int = 3000
     """Fixed random pixels per scene in the objective (0 = every masked pixel)."""
 
