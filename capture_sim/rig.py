@@ -312,6 +312,8 @@ def rig_source(name_or_path: str | Path) -> Path:
         path = RIG_DIR / f"{name_or_path}.toml"
         if not path.exists():
             raise InputError(f"unknown rig {name_or_path!r}; presets: {', '.join(available_rigs())}")
+    elif not path.exists():  # say that it is the rig, and where it was looked for
+        raise InputError(f"rig file not found: {path.absolute()}")
     return path
 
 

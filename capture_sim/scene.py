@@ -233,7 +233,8 @@ def rig_for_scene(rig: Rig, scene: Scene) -> Rig:
     """
     rows, cols = scene.light_positions.shape[:2]
     if (rows, cols) != (rig.rows, rig.cols):
-        raise InputError(f"scene {scene.name} has a {rows} x {cols} light grid but rig {rig.name} is {rig.rows} x {rig.cols}")
+        raise InputError(f"scene {scene.name} has a {rows} x {cols} light grid but rig {rig.name} is {rig.rows} x {rig.cols}; "
+                         "a scene made for another rig needs that rig (--rig, or `rig` in a config)")
     camera = Camera(K_cam=tuple(tuple(float(v) for v in row) for row in scene.K_cam), height=scene.height, width=scene.width,
                     exposure_ms=rig.camera.exposure_ms)
     lights = scene.light_positions.astype(np.float64)

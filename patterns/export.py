@@ -140,7 +140,7 @@ def export_frames(
         C x 3), contact_sheet.
     """
     values = validate_patterns(patterns)
-    check_patterns_match_rig(values, rig.rows, rig.cols)
+    check_patterns_match_rig(values, rig.rows, rig.cols, rig.name)
     if not is_whole_number(bit_depth) or bit_depth not in _BIT_DEPTHS:
         raise InputError(f"bit depth must be 8 or 16, got {bit_depth!r}")
     if not is_whole_number(compression_level, 0, 9):
@@ -301,7 +301,7 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
     if np.abs(listed - patterns).max() > 0.5 / levels + 1e-6:
         raise InputError(f"{frames_dir}: the frames do not show the pattern values listed in the manifest")
     if rig is not None:
-        check_patterns_match_rig(patterns, rig.rows, rig.cols)
+        check_patterns_match_rig(patterns, rig.rows, rig.cols, rig.name)
     return patterns, manifest
 
 

@@ -87,8 +87,17 @@ def load_patterns(path: str | Path) -> tuple[np.ndarray, dict]:
     return validate_patterns(contents["patterns"], str(path)), read_meta(contents, path, "pattern")
 
 
-def check_patterns_match_rig(patterns, rows: int, cols: int) -> None:
-    """Raise ``InputError`` unless ``patterns`` (M, R, C, 3) is on the rig's ``rows`` x ``cols`` grid."""
+def names_pattern_file(text) -> bool:
+    """Whether a setting such as ``TrainConfig.init`` names a pattern file (.npz or .npy) rather
+    than 'auto' or a family."""
+    return isinstance(text, str) and Path(text).suffix in (".npz", ".npy")
+
+
+def check_patterns_match_rig(patterns, rows: int, cols: int, rig_name: str | None = None) -> None:
+    """Raise ``InputError`` unless ``patterns`` (M, R, C, 3) is on the rig's ``rows`` x ``cols``
+    grid; ``rig_name`` names the rig in the message."""
     shape = tuple(np.shape(patterns))
     if len(shape) != 4 or shape[1:3] != (rows, cols):
-        raise InputError(f"patterns have shape {shape} but the rig's display grid is {rows} x {cols} (expected (M, {rows}, {cols}, 3))")
+        rig = "the rig" if rig_name is None else f"rig {rig_name}"
+        hint = "; patterns made for another rig need that rig (--rig)" if len(shape) == 4 else ""
+        raise InputError(f"patterns have shape {shape} but {rig}'s display grid is {rows} x {cols} (expected (M, {rows}, {cols}, 3)){hint}")

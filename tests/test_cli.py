@@ -800,3 +800,41 @@ def test_scenes_synth_cast_shadows_traces_shadows_that_darken_scenes_and_capture
         err = capsys.readouterr().err
         assert err.startswith("displex: error:") and message in err and err.count("\n") == 1, (argv, err)
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_inputs_made_for_another_rig_need_rig(tmp_path, scene_file, capsys):
+    """Without --rig, a pattern or scene file that records another rig is refused (the default rig's
+    display would silently be used for it); --rig, or a config's `rig`, chooses."""
+    from capture_sim.rig import RIG_DIR
+    from train.rig_choice import recorded_rig
+
+    other = tmp_path / "twin.toml"  # the reference display under another name: same grid and lights
+    other.write_text((RIG_DIR / "dir-odyssey-ark.toml").read_text().replace('name = "dir-odyssey-ark"', 'name = "twin"'))
+    assert load_rig(other).name == "twin"
+    patterns = tmp_path / "p.npz"
+    assert run(["patterns", "make", "--family", "mono_gradient", "--M", "4", "--rig", str(other), "--out", str(patterns)]) == 0
+    scene = tmp_path / "twin_scene.npz"
+    save_scene(synthesize_scene("sphere", "lambertian", load_rig(other), height=12, width=14, seed=0), scene)
+    assert recorded_rig(patterns, "pattern") == "twin" and recorded_rig(scene_file, "scene") == "dir-odyssey-ark"
+    assert recorded_rig(_pattern_file(tmp_path, "white", load_rig())[0], "pattern") is None  # a plain .npy records none
+    capsys.readouterr()
+    refused = [["export", "--patterns", str(patterns), "--out", str(tmp_path / "frames")],
+               ["evaluate", "--scenes", str(tmp_path), "--patterns", "olat", "--noise", "off"],
+               ["simulate", "--scene", str(scene_file), "--patterns", str(patterns), "--out", str(tmp_path / "sim")],
+               ["invrender", "--scene", str(scene), "--iterations", "1"],
+               ["train", "--M", "2", "--steps", "1", "--scenes", str(scene), "--out", str(tmp_path / "t.npz")],
+               ["search", "--family", "tri_complementary", "--M", "2", "--maxeval", "1", "--scenes", str(scene), "--out", str(tmp_path / "s.npz")]]
+    for args in refused:
+        assert run(args) == 2, args
+        err = capsys.readouterr().err.strip()
+        assert "was made for rig 'twin', but no --rig was given" in err and "\n" not in err, err
+    assert not (tmp_path / "frames").exists() and not (tmp_path / "t.npz").exists()
+    assert run(["export", "--patterns", str(patterns), "--rig", str(other), "--out", str(tmp_path / "frames")]) == 0
+    assert json.loads((tmp_path / "frames" / "manifest.json").read_text())["rig"] == "twin"
+    config = tmp_path / "train.toml"
+    config.write_text(f'rig = "{other}"\nval_every = 0\npixels_per_scene = 64\n')
+    assert run(["train", "--config", str(config), "--M", "2", "--steps", "1", "--scenes", str(scene), "--out", str(tmp_path / "t.npz")]) == 0
+    assert run(["train", "--rig", str(other), "--M", "2", "--steps", "1", "--scenes", str(scene), "--out", str(tmp_path / "t2.npz")]) == 0
+    # A grid mismatch names the rig and says what to do.
+    assert run(["export", "--patterns", str(patterns), "--rig", "panel-32in-5x10", "--out", str(tmp_path / "frames2")]) == 2
+    assert "rig panel-32in-5x10's display grid is 5 x 10" in capsys.readouterr().err

@@ -5,6 +5,7 @@ import math
 import shutil
 
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -163,7 +164,7 @@ def test_checkpoint_of_scene_files_rewritten_since_is_refused(tmp_path, scene_di
     train_patterns(config, tmp_path / "a.npz", progress=False)  # unchanged files: the finished run is reused
     rewritten = sorted(copies[1].glob("*.npz"))[0]
     rewritten.write_bytes(rewritten.read_bytes())  # same content, written again: its files may differ
-    with pytest.raises(InputError, match="made from scene or pattern files that were rewritten or replaced since; pass --fresh"):
+    with pytest.raises(InputError, match=rf"made from input files \(scenes, start patterns, rig\) that were rewritten or replaced since \({rewritten.name}\); pass --fresh"):
         train_patterns(config, tmp_path / "a.npz", progress=False)
 
 
@@ -207,6 +208,27 @@ def test_config_files_are_type_checked(tmp_path):
             load_config(TrainConfig, path)
     path.write_text("learning_rate = 2\n")  # an integer is a fine float
     assert load_config(TrainConfig, path).learning_rate == 2
+
+
+def test_paths_in_config_files_are_relative_to_the_folder_holding_configs(tmp_path, monkeypatch):
+    """As in compare configs, whatever the working directory; flags stay relative to it."""
+    from train.config_io import load_config
+    from train.search import SearchConfig
+
+    (tmp_path / "proj" / "configs" / "train").mkdir(parents=True)
+    (tmp_path / "loose").mkdir()
+    body = 'rig = "rigs/mine.toml"\nscenes = ["data/a.npz", "/abs/b"]\nval_scenes = ["data/v"]\ninit = "p/start.npz"\n'
+    (tmp_path / "proj" / "configs" / "train" / "t.toml").write_text(body)
+    (tmp_path / "loose" / "t.toml").write_text(body)
+    monkeypatch.chdir(tmp_path / "loose")
+    for config_path, root in ((tmp_path / "proj" / "configs" / "train" / "t.toml", tmp_path / "proj"), (Path("t.toml"), tmp_path / "loose")):
+        config = load_config(TrainConfig, config_path)
+        assert config.rig == str(root / "rigs" / "mine.toml") and config.init == str(root / "p" / "start.npz")
+        assert config.scenes == (str(root / "data" / "a.npz"), "/abs/b") and config.val_scenes == (str(root / "data" / "v"),)
+    assert load_config(TrainConfig, config_path, {"scenes": ("x",)}).scenes == ("x",)  # a flag's path is the working directory's
+    (tmp_path / "loose" / "s.toml").write_text('rig = "dir-odyssey-ark"\nscenes = ["s"]\n')
+    config = load_config(SearchConfig, tmp_path / "loose" / "s.toml")
+    assert config.rig == "dir-odyssey-ark" and config.scenes == (str(tmp_path / "loose" / "s"),)  # a preset name stays a name
 
 
 def test_user_scenes_without_val_scenes_are_not_validated_and_reruns_keep_the_loss(tmp_path, scene_dirs):

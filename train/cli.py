@@ -18,6 +18,8 @@ from capture_sim.rig import DEFAULT_RIG, rig_file
 NOISE_CHOICES = ("off", "default")
 NOISE_HELP = "'default': the rig's Poisson-Gaussian noise and quantisation; 'off': an ideal sensor (clipping stays)"
 RIG_HELP = f"rig preset or TOML path (default {DEFAULT_RIG})"
+INPUT_RIG_HELP = (f"rig preset or TOML path (default {DEFAULT_RIG}; without it, an input file made for another rig is "
+                  "refused rather than used with the wrong display)")
 EXPOSURE_HELP = "'rig' (default: the rig's exposure setting, auto for the presets), 'auto' or a positive gain"
 
 
@@ -124,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_argument("--noise", choices=NOISE_CHOICES, default="default", help=NOISE_HELP)
     simulate.add_argument("--exposure", default="rig", help=EXPOSURE_HELP)
     simulate.add_argument("--seed", type=int, default=0, help="seed of the simulated noise")
-    simulate.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
+    simulate.add_argument("--rig", default=None, help=INPUT_RIG_HELP)
     simulate.set_defaults(handler=_simulate)
 
     patterns = commands.add_parser("patterns", help="heuristic pattern families").add_subparsers(dest="patterns_command", required=True, metavar="{make,list}")
@@ -147,7 +149,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--method", choices=("ps", "woodham"), default="ps")
     evaluate.add_argument("--noise", choices=NOISE_CHOICES, default="default", help=NOISE_HELP)
     evaluate.add_argument("--exposure", default="rig", help=EXPOSURE_HELP)
-    evaluate.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
+    evaluate.add_argument("--rig", default=None, help=INPUT_RIG_HELP)
     evaluate.add_argument("--seed", type=int, default=0, help="seed of the simulated noise")
     evaluate.add_argument("--json", type=_path, default=None, help="write results JSON here")
     evaluate.add_argument("--out", type=_path, default=None, help="folder for normal maps, error maps, summary figure")
@@ -163,6 +165,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     train.add_argument("--steps", type=int, default=None, help="Adam steps (default: the config's; configs/train/default.toml: 150)")
     train.add_argument("--seed", type=int, default=None, help="seed of the start, pixel sampling and noise (default: the config's, 0)")
+    train.add_argument("--rig", default=None, help="rig preset or TOML path (default: the config's, " + DEFAULT_RIG + ")")
     train.add_argument("--logdir", type=_path, default=None, help="TensorBoard log folder")
     train.add_argument("--rerender-weight", type=float, default=None, help="weight of the re-rendering loss (0 = normals only)")
     train.add_argument("--out", type=_pattern_output, required=True, help="learned pattern file (.npz)")
@@ -178,6 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
     search.add_argument("--maxtime", type=float, default=None, help="wall-clock limit in seconds (0 = none)")
     search.add_argument("--seed", type=int, default=None, help="seed of NLopt's random choices, the pixel subsets and the noise (default: the config's, 0)")
     search.add_argument("--scenes", type=_path, nargs="+", default=None, help="scenes to optimise on (default: synthetic train split)")
+    search.add_argument("--rig", default=None, help="rig preset or TOML path (default: the config's, " + DEFAULT_RIG + ")")
     search.add_argument("--logdir", type=_path, default=None, help="TensorBoard folder: MAE and best-so-far per evaluation")
     search.add_argument("--out", type=_pattern_output, required=True,
                         help="best pattern file; the trace goes to <stem>.trace.csv and .trace.png (<stem>.trace.partial.csv while it runs)")
@@ -190,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     export = commands.add_parser("export", help="write display frames, manifest and contact sheet for the rig")
     export.add_argument("--patterns", type=_path, required=True)
-    export.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
+    export.add_argument("--rig", default=None, help=INPUT_RIG_HELP)
     export.add_argument("--out", type=_path, required=True, help="output folder for the frames, manifest.json and contact sheet")
     export.add_argument("--bit-depth", type=int, choices=(8, 16), default=8)
     export.add_argument("--olat", action="store_true", help="also write the OLAT capture sequence (K frames, black, white)")
@@ -209,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     invrender.add_argument("--noise", choices=NOISE_CHOICES, default="default", help=NOISE_HELP)
     invrender.add_argument("--exposure", default="rig", help=EXPOSURE_HELP + " (with --patterns; OLAT captures are always auto-exposed)")
     invrender.add_argument("--seed", type=int, default=0, help="seed of the simulated noise")
-    invrender.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
+    invrender.add_argument("--rig", default=None, help=INPUT_RIG_HELP)
     # The global --threads, also accepted here (older command lines). SUPPRESS: without this flag a
     # global value stands (a subcommand default would overwrite it).
     invrender.add_argument("--threads", type=_thread_count, default=argparse.SUPPRESS, dest="torch_threads", metavar="T",
@@ -241,7 +245,8 @@ def _evaluate(args) -> None:
 
     if args.out is not None:
         check_output_folder(args.out, "evaluate")
-    config = EvaluateConfig(tuple(args.scenes), args.patterns, args.method, args.noise, args.exposure, args.rig, args.seed, args.json, args.out)
+    rig = rig_for_inputs(args.rig, [args.patterns], args.scenes)
+    config = EvaluateConfig(tuple(args.scenes), args.patterns, args.method, args.noise, args.exposure, rig, args.seed, args.json, args.out)
     document = run_evaluate(config)
     for row in document["scenes"]:
         print(f"{row['name']:<32} MAE {row['mae']:6.2f} deg  median {row['median']:6.2f}  invalid {row['invalid_fraction']:.3f}")
@@ -255,7 +260,7 @@ def _flag_names(overrides: dict, **special: str) -> dict:
 
 def _train(args) -> None:
     from train.config_io import load_config
-    from train.learn import TrainConfig, output_files, train_patterns
+    from train.learn import TrainConfig, names_pattern_file, output_files, train_patterns
 
     overrides = {
         "num_patterns": args.num_patterns,
@@ -265,13 +270,28 @@ def _train(args) -> None:
         "steps": args.steps,
         "seed": args.seed,
         "rerender_weight": args.rerender_weight,
+        "rig": args.rig,
     }
     config = load_config(TrainConfig, args.config, overrides, flags=_flag_names(overrides, num_patterns="--M"))
+    _check_default_rig(config.rig, args.rig, [config.init if names_pattern_file(config.init) else None], [*config.scenes, *config.val_scenes])
     refuse_overwriting(output_files(args.out), [("--init file", config.init), ("--config file", args.config),
                                                 *_scene_files(config.scenes, config.val_scenes)])
     result = train_patterns(config, args.out, logdir=args.logdir, checkpoint_mode="fresh" if args.fresh else "resume")
     last = f", validation MAE {result.val_history[-1][1]:.2f} deg" if result.val_history else " (not validated: pass --val-scenes)"
     print(f"wrote learned patterns to {args.out}{last}")
+
+
+def rig_for_inputs(given: str | None, pattern_files=(), scenes=()) -> str:
+    """``train.rig_choice.rig_for_inputs``, imported when a command runs (it loads torch)."""
+    from train.rig_choice import rig_for_inputs as choose
+
+    return choose(given, pattern_files, scenes)
+
+
+def _check_default_rig(rig: str, flag: str | None, pattern_files, scenes) -> None:
+    """``rig_for_inputs`` for commands whose rig may also come from a config: a config that names
+    a rig other than the default has chosen, as --rig does."""
+    rig_for_inputs(None if flag is None and rig == DEFAULT_RIG else rig, pattern_files, scenes)
 
 
 def _scene_files(*groups):
@@ -328,8 +348,10 @@ def _search(args) -> None:
         "maxtime": args.maxtime,
         "seed": args.seed,
         "scenes": None if args.scenes is None else tuple(str(p) for p in args.scenes),
+        "rig": args.rig,
     }
     config = load_config(SearchConfig, args.config, overrides, flags=_flag_names(overrides, num_patterns="--M"))
+    _check_default_rig(config.rig, args.rig, [], config.scenes)
     refuse_overwriting(output_files(args.out), [("--config file", args.config), *_scene_files(config.scenes)])
     summary = run_search(config, args.out, logdir=args.logdir)
     print(f"{summary['family']} M={summary['num_patterns']} {summary['algorithm']}: MAE {summary['start_mae']:.2f} -> "
@@ -353,7 +375,8 @@ def _export(args) -> None:
     if replaced_by_export(args.patterns, args.out):
         raise InputError(f"--patterns {args.patterns} lies in the export folder under a name the export replaces; move it or choose another --out")
     values, _ = load_patterns(args.patterns)
-    manifest = export_frames(values, load_rig(args.rig), args.out, bit_depth=args.bit_depth, include_olat=args.olat)
+    rig = load_rig(rig_for_inputs(args.rig, [args.patterns]))
+    manifest = export_frames(values, rig, args.out, bit_depth=args.bit_depth, include_olat=args.olat)
     print(f"wrote {len(manifest['frames'])} frames and manifest.json to {args.out}")
 
 
@@ -374,6 +397,7 @@ def _invrender(args) -> None:
 
     if args.out is not None:
         check_output_folder(args.out, "invrender")
+    args.rig = rig_for_inputs(args.rig, [args.patterns], [args.scene])
     outputs = [("--json", separate_json(args.json, args.out, "result.json")), *((f"--out file {name}", None if args.out is None else args.out / name) for name in OUTPUT_FILES)]
     refuse_overwriting(outputs, [("--scene", args.scene), ("--patterns file", None if args.patterns == "olat" else args.patterns),
                                  ("--rig file", rig_file(args.rig))])
@@ -431,7 +455,8 @@ def _scenes_synth(args) -> None:
 def _simulate(args) -> None:
     from train.simulate_command import SimulateConfig, run_simulate
 
-    meta = run_simulate(SimulateConfig(args.scene, args.patterns, args.out, args.noise, args.exposure, args.seed, args.rig))
+    rig = rig_for_inputs(args.rig, [args.patterns], [args.scene])
+    meta = run_simulate(SimulateConfig(args.scene, args.patterns, args.out, args.noise, args.exposure, args.seed, rig))
     print(f"wrote {len(meta['files'])} captures to {args.out} (exposure {meta['exposure']:.4g})")
 
 

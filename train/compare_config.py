@@ -10,12 +10,13 @@ from pathlib import Path
 
 
 from capture_sim.errors import InputError, check_seed
-from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, Rig, check_noise_scale, rig_file
+from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, Rig, check_noise_scale
 from capture_sim.toml_io import load_toml
 from patterns.families import FAMILIES, PRESETS, get_family
+from patterns.io import names_pattern_file
 from reconstruct.photometric_stereo import PSConfig
-from train.config_io import config_from_dict, config_to_dict, json_value
-from train.learn import TrainConfig, names_pattern_file
+from train.config_io import config_from_dict, config_to_dict, json_value, repository_root, resolve_file_fields, resolve_path
+from train.learn import TrainConfig
 from train.search import SearchConfig
 
 
@@ -247,20 +248,6 @@ class CompareConfig:
                             pixels_per_scene=run.pixels_per_scene)
 
 
-def repository_root(config_path: Path) -> Path:
-    """The folder holding the ``configs/`` folder a config file sits in (else the file's folder)."""
-    config_path = Path(config_path).resolve()
-    for parent in config_path.parents:
-        if parent.name == "configs":
-            return parent.parent
-    return config_path.parent
-
-
-def _resolve(path: str, root: Path) -> str:
-    candidate = Path(path).expanduser()
-    return str(candidate if candidate.is_absolute() else root / candidate)
-
-
 def _int_keys(table, what: str) -> dict:
     if not isinstance(table, dict):
         raise InputError(f"{what} must be a table keyed by M")
@@ -318,22 +305,12 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
         if not isinstance(paths, (list, tuple)) or not all(isinstance(path, str) for path in paths):
             raise InputError(f"{source}: {key} must be a list of scene files or folders, got {paths!r}")
     if root is not None:
-        values["external"] = tuple(dataclasses.replace(item, path=_resolve(item.path, root)) for item in values["external"])
-        # An init pattern file, like an external one (a family name stays a name).
-        def resolve_init(table: dict) -> dict:
-            return {**table, "init": _resolve(table["init"], root)} if names_pattern_file(table.get("init")) else table
-
-        if "learned" in values:
-            values["learned"] = resolve_init(values["learned"])
+        values["external"] = tuple(dataclasses.replace(item, path=resolve_path(item.path, root)) for item in values["external"])
+        values = resolve_file_fields(values, root)
+        if "learned" in values:  # an init pattern file, like an external one
+            values["learned"] = resolve_file_fields(values["learned"], root)
         if "learned_at" in values:
-            values["learned_at"] = {count: resolve_init(table) for count, table in values["learned_at"].items()}
-        for key in ("train_scenes", "test_scenes"):
-            if key in values:
-                values[key] = [_resolve(path, root) for path in values[key]]
-        if isinstance(values.get("rig"), str) and rig_file(values["rig"]):  # a preset name stays a name
-            values["rig"] = _resolve(values["rig"], root)
-        if isinstance(values.get("out"), str) and values["out"].strip():  # a blank one is refused as such
-            values["out"] = _resolve(values["out"], root)
+            values["learned_at"] = {count: resolve_file_fields(table, root) for count, table in values["learned_at"].items()}
     return config_from_dict(CompareConfig, values, source=source)
 
 

@@ -9,7 +9,9 @@ import typing
 from pathlib import Path
 
 from capture_sim.errors import InputError
+from capture_sim.rig import rig_file
 from capture_sim.toml_io import load_toml
+from patterns.io import names_pattern_file
 
 
 def config_from_dict(cls, values: dict, source: str = "config"):
@@ -62,12 +64,51 @@ def _checked_value(key: str, value, hint, source: str):
     return value
 
 
+def repository_root(config_path: Path) -> Path:
+    """The folder holding the ``configs/`` folder a config file sits in (else the file's folder):
+    what relative paths inside the file are relative to."""
+    config_path = Path(config_path).resolve()
+    for parent in config_path.parents:
+        if parent.name == "configs":
+            return parent.parent
+    return config_path.parent
+
+
+def resolve_path(path: str, root: Path) -> str:
+    """``path`` made relative to ``root`` unless it is absolute (``~`` expanded)."""
+    candidate = Path(path).expanduser()
+    return str(candidate if candidate.is_absolute() else root / candidate)
+
+
+SCENE_LIST_KEYS = ("scenes", "val_scenes", "train_scenes", "test_scenes")
+
+
+def resolve_file_fields(values: dict, root: Path) -> dict:
+    """``values`` of a config file (train, search, compare or its ``[learned]`` tables) with their
+    file paths resolved against ``root``: the scene lists, ``init`` when it names a pattern file,
+    ``rig`` when it names a TOML file (a preset name stays a name) and a non-blank ``out``. Values
+    of the wrong type are left for the config's own checks to refuse."""
+    values = dict(values)
+    for key in SCENE_LIST_KEYS:
+        if isinstance(values.get(key), list) and all(isinstance(path, str) for path in values[key]):
+            values[key] = [resolve_path(path, root) for path in values[key]]
+    if names_pattern_file(values.get("init")):
+        values["init"] = resolve_path(values["init"], root)
+    if isinstance(values.get("rig"), str) and rig_file(values["rig"]):
+        values["rig"] = resolve_path(values["rig"], root)
+    if isinstance(values.get("out"), str) and values["out"].strip():  # a blank one is refused as such
+        values["out"] = resolve_path(values["out"], root)
+    return values
+
+
 def load_config(cls, path: str | Path | None, overrides: dict | None = None, flags: dict | None = None):
     """Defaults of ``cls``, updated by the TOML file at ``path`` (if any), then by non-None overrides.
 
-    ``flags`` maps override keys to the command-line flags that set them: an error about a value a
-    flag set names the flag (``--steps``), not only the field."""
-    values = {} if path is None else dict(load_toml(path))
+    File paths inside the file are relative to the folder holding its ``configs/`` folder
+    (``resolve_file_fields``), as in compare configs; those of overrides (command-line flags) to
+    the working directory. ``flags`` maps override keys to the command-line flags that set them:
+    an error about a value a flag set names the flag (``--steps``), not only the field."""
+    values = {} if path is None else resolve_file_fields(load_toml(path), repository_root(Path(path)))
     given = {key: value for key, value in (overrides or {}).items() if value is not None}
     values.update(given)
     try:

@@ -28,7 +28,7 @@ from capture_sim.errors import InputError, check_seed, one_line
 from capture_sim.rig import DEFAULT_RIG, check_noise_scale, load_rig, rig_file, rig_source
 from capture_sim.scene import file_fingerprints, scene_paths
 from patterns.families import FAMILIES, get_family, make_patterns
-from patterns.io import check_patterns_match_rig, load_patterns, save_patterns
+from patterns.io import check_patterns_match_rig, load_patterns, names_pattern_file, save_patterns
 from patterns.parameterization import keep_movable, logits_to_patterns, patterns_to_logits
 from reconstruct.photometric_stereo import solve_ps
 from reconstruct.unrolled_ps import UnrolledPSConfig, solve_ps_unrolled
@@ -145,12 +145,6 @@ class TrainConfig:
         check_seed("scene_seed", self.scene_seed)
         if self.init != "auto" and self.init not in FAMILIES and not names_pattern_file(self.init):
             raise InputError(f"init must be 'auto', a family ({', '.join(FAMILIES)}) or a pattern file, got {self.init!r}")
-
-
-def names_pattern_file(init) -> bool:
-    """Whether a ``TrainConfig.init`` value names a pattern file (.npz or .npy) rather than 'auto'
-    or a family."""
-    return isinstance(init, str) and Path(init).suffix in (".npz", ".npy")
 
 
 def auto_init_family(num_patterns: int) -> str:
@@ -370,9 +364,23 @@ def load_checkpoint(checkpoint: Path, resolved: dict) -> dict:
     if state["config"] != resolved:
         changed = sorted(key for key in resolved if state["config"].get(key) != resolved[key]) if isinstance(state["config"], dict) else []
         if changed == ["input_files"]:
-            raise InputError(f"checkpoint {checkpoint} was made from scene or pattern files that were rewritten or replaced since; {_AFRESH}")
+            files = _changed_files(state["config"]["input_files"], resolved["input_files"])
+            raise InputError(f"checkpoint {checkpoint} was made from input files (scenes, start patterns, rig) that were rewritten or "
+                             f"replaced since{files}; {_AFRESH}")
         raise InputError(f"checkpoint {checkpoint} was written with another config ({', '.join(changed) or 'other keys'} differ); {_AFRESH}")
     return state
+
+
+def _changed_files(recorded, current: list[list]) -> str:
+    """' (a, b)': the files whose ``file_fingerprints`` differ between a checkpoint's record and
+    now, or '' when the record cannot be read as fingerprints."""
+    try:
+        before = {entry[0]: list(entry) for entry in recorded}
+    except (TypeError, IndexError, KeyError):
+        return ""
+    now = {entry[0]: entry for entry in current}
+    names = [Path(path).name for path in sorted(set(before) | set(now)) if before.get(path) != now.get(path)]
+    return f" ({', '.join(names)})" if names else ""
 
 
 CHECKPOINT_MODES = ("resume", "fresh", "resume_or_fresh")
