@@ -15,6 +15,7 @@ Pixels outside the mask have zero OLAT, zero normal and zero depth.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,7 +24,7 @@ import torch
 from tqdm import tqdm
 
 from capture_sim.atomic import check_replaceable, staged_files, write_json
-from capture_sim.errors import MAX_SEED, InputError, check_seed
+from capture_sim.errors import MAX_SEED, DisplexWarning, InputError, check_seed
 from capture_sim.materials import MATERIALS, make_material
 from capture_sim.render import render_olat
 from capture_sim.rig import Rig
@@ -36,12 +37,35 @@ _CHUNK_PIXELS = 1024
 """Pixels shaded at once: about 1024 * K * 3 float64 values per temporary, ~3.5 MB each for K = 144."""
 
 
+SCENE_SIZE_DIVISOR = 4
+"""Default synthetic scenes are the rig camera's resolution divided by this (128 x 153 for the
+reference camera's 512 x 612): small enough to learn on a laptop CPU."""
+
+
+def default_scene_size(rig: Rig) -> tuple[int, int]:
+    """(height, width) of the default synthetic scenes: the rig camera's resolution divided by
+    ``SCENE_SIZE_DIVISOR``, at least 2 x 2."""
+    return tuple(max(2, round(side / SCENE_SIZE_DIVISOR)) for side in (rig.camera.height, rig.camera.width))
+
+
+def check_scene_aspect(rig: Rig, height: int, width: int) -> None:
+    """Warn when ``height`` x ``width`` has another aspect ratio than the rig's camera by more than
+    a pixel's rounding: the camera's intrinsics are scaled to the size per axis, so its pixels
+    would not be square and every object would look squashed."""
+    scale_x, scale_y = width / rig.camera.width, height / rig.camera.height
+    if abs(scale_x - scale_y) > max(scale_x, scale_y) / min(height, width):
+        square = (height, max(2, round(height * rig.camera.width / rig.camera.height)))
+        warnings.warn(f"{height} x {width} scenes have another aspect ratio than rig {rig.name}'s {rig.camera.height} x "
+                      f"{rig.camera.width} camera: their pixels are not square (x scaled by {scale_x:.3g}, y by {scale_y:.3g}); "
+                      f"{square[0]} x {square[1]} would keep them square", DisplexWarning, stacklevel=3)
+
+
 def synthesize_scene(
     shape: str,
     material: str,
     rig: Rig,
-    height: int = 128,
-    width: int = 153,
+    height: int | None = None,
+    width: int | None = None,
     seed: int = 0,
     cast_shadows: bool = False,
     name: str | None = None,
@@ -54,7 +78,7 @@ def synthesize_scene(
         material: one of ``capture_sim.materials.MATERIALS``.
         rig: the rig: its superpixel positions are the lights, its falloff is used, its camera
             intrinsics are scaled to ``height`` x ``width``.
-        height, width: image size in pixels.
+        height, width: image size in pixels (None: ``default_scene_size``).
         seed: non-negative integer; the shape and the material draw from it (same seed, same scene).
         cast_shadows: trace shadow rays against the shape (slower); attached shadows are always on.
         name: scene name for ``meta``; default ``"{shape}-{material}-s{seed}"``.
@@ -70,6 +94,8 @@ def synthesize_scene(
         raise InputError(f"unknown shape {shape!r}; choose from {', '.join(SHAPES)}")
     if material not in MATERIALS:
         raise InputError(f"unknown material {material!r}; choose from {', '.join(MATERIALS)}")
+    if height is None or width is None:
+        height, width = default_scene_size(rig) if height is None and width is None else (height, width)
     if not isinstance(height, (int, np.integer)) or not isinstance(width, (int, np.integer)) or height < 1 or width < 1:
         raise InputError(f"image size must be positive integers, got {height} x {width}")
     camera_rig = rig.with_resolution(int(height), int(width))
@@ -200,13 +226,13 @@ def default_scene_specs(seed: int = 0) -> dict[str, list[SceneSpec]]:
     return specs
 
 
-def default_scene_set(rig: Rig, height: int = 128, width: int = 153, seed: int = 0,
+def default_scene_set(rig: Rig, height: int | None = None, width: int | None = None, seed: int = 0,
                       cast_shadows: bool = False, progress: bool = True) -> dict[str, list[Scene]]:
     """Synthesise the default scene set in memory (about 35 MB per scene at 128 x 153 per stack).
 
     Args:
         rig: the capture rig.
-        height, width: image size in pixels.
+        height, width: image size in pixels (None: ``default_scene_size``).
         seed: set seed (see ``default_scene_specs``); same seed, identical arrays.
         cast_shadows: trace cast shadows (slower).
         progress: show a tqdm progress bar (tens of seconds at the default size).
@@ -214,6 +240,8 @@ def default_scene_set(rig: Rig, height: int = 128, width: int = 153, seed: int =
     Returns:
         ``{"train": [6 scenes], "test": [4 scenes]}``.
     """
+    if height is None and width is None:
+        height, width = default_scene_size(rig)
     scenes: dict[str, list[Scene]] = {split: [] for split in default_scene_specs(seed)}
     for split, _, scene in _synthesised(rig, height, width, seed, cast_shadows, "synthesising the default scenes", progress, leave=False):
         scenes[split].append(scene)
@@ -223,12 +251,13 @@ def default_scene_set(rig: Rig, height: int = 128, width: int = 153, seed: int =
 def _synthesised(rig: Rig, height: int, width: int, seed: int, cast_shadows: bool, description: str, progress: bool, leave: bool = True):
     """Yield (split, spec, scene) for every scene of the default set, one at a time, with a bar
     (``leave``: keep the finished bar on screen)."""
+    check_scene_aspect(rig, height, width)
     jobs = [(split, spec) for split, specs in default_scene_specs(seed).items() for spec in specs]
     for split, spec in tqdm(jobs, desc=description, unit="scene", disable=not progress, leave=leave):
         yield split, spec, synthesize_scene(spec.shape, spec.material, rig, height, width, spec.seed, cast_shadows, spec.name)
 
 
-def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int = 153, seed: int = 0,
+def write_scene_set(out_dir: str | Path, rig: Rig, height: int | None = None, width: int | None = None, seed: int = 0,
                     cast_shadows: bool = False, progress: bool = True) -> Path:
     """Synthesise the default scene set and write it, one scene in memory at a time.
 
@@ -242,7 +271,7 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int
     Args:
         out_dir: output folder (created if missing).
         rig: the capture rig.
-        height, width: image size in pixels.
+        height, width: image size in pixels (None: ``default_scene_size``).
         seed: set seed (see ``default_scene_specs``).
         cast_shadows: trace cast shadows (slower).
         progress: show a tqdm progress bar.
@@ -251,6 +280,8 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int = 128, width: int
         Path of the written ``index.json``.
     """
     out_dir = Path(out_dir)
+    if height is None and width is None:
+        height, width = default_scene_size(rig)
     index = {
         "generator": GENERATOR,
         "rig": rig.name,

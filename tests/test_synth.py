@@ -477,3 +477,28 @@ def test_damaged_or_wrong_scene_files_give_one_clear_error(tmp_path):
     np.savez(tmp_path / "strings.npz", **arrays)
     with pytest.raises(InputError, match="K_cam must hold numbers"):
         load_scene(tmp_path / "strings.npz")
+
+
+def test_default_scene_size_follows_the_rig_camera_and_odd_aspects_are_warned(rig, tmp_path):
+    """Default scenes are a quarter of the rig camera (128 x 153 on the reference rig); a size of
+    another aspect ratio than the camera's, whose pixels would not be square, is warned."""
+    from capture_sim.errors import DisplexWarning
+    from capture_sim.rig import Camera
+    from capture_sim.synth import check_scene_aspect, default_scene_size
+
+    assert default_scene_size(rig) == (128, 153)
+    wide = rig.replace(camera=Camera(K_cam=((90.0, 0.0, 31.5), (0.0, 90.0, 23.5), (0.0, 0.0, 1.0)), height=48, width=64))
+    assert default_scene_size(wide) == (12, 16)
+    scene = synthesize_scene("sphere", "lambertian", wide)
+    assert (scene.height, scene.width) == (12, 16) and scene.K_cam[0, 0] == scene.K_cam[1, 1] == pytest.approx(22.5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_scene_aspect(wide, 12, 16)
+        check_scene_aspect(wide, 12, 17)  # a pixel's rounding
+        check_scene_aspect(rig, 12, 14)
+    with pytest.warns(DisplexWarning, match=r"12 x 24 scenes have another aspect ratio than rig .*48 x 64 camera.*12 x 16 would keep them square"):
+        check_scene_aspect(wide, 12, 24)
+    with pytest.warns(DisplexWarning, match="not square"):
+        write_scene_set(tmp_path / "squashed", wide, height=12, width=24, progress=False)
+    index = json.loads(write_scene_set(tmp_path / "set", wide, progress=False).read_text())
+    assert (index["height"], index["width"]) == (12, 16)

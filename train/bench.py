@@ -25,6 +25,7 @@ from capture_sim.rig import check_noise_scale, load_rig
 from capture_sim.geometry import pixel_rays
 from capture_sim.render import render_olat
 from capture_sim.simulator import LightTransport, light_transport, simulate
+from capture_sim.synth import default_scene_size
 from patterns.families import make_patterns
 from patterns.parameterization import logits_to_patterns, patterns_to_logits
 from reconstruct.metrics import angular_error_deg
@@ -35,7 +36,7 @@ from train.capture import capture_scene, scene_exposure
 from train.learn import EXPOSURE_PIXELS, TrainConfig, normal_loss
 from train.evaluate import EvalSettings, evaluate_scene
 from train.scene_pixels import ScenePixels, scene_pixels, shuffle_pixels
-from train.scene_sets import DEFAULT_SIZE, default_split
+from train.scene_sets import default_split
 
 FULL_SIZE = (512, 612)
 PUBLISHED_PS_FORWARD_S = 1.2
@@ -397,12 +398,13 @@ def sweep_chart(document: dict, path: Path, caption: str) -> None:
     save_figure(fig, path)
 
 
-def run_sweep(json_path: Path | None, size: tuple[int, int] = DEFAULT_SIZE, noise_scales=SWEEP_NOISE_SCALES, methods=SWEEP_METHODS, seed: int = 0, progress: bool = True) -> dict:
+def run_sweep(json_path: Path | None, size: tuple[int, int] | None = None, noise_scales=SWEEP_NOISE_SCALES, methods=SWEEP_METHODS, seed: int = 0, progress: bool = True) -> dict:
     """``displex bench ps --sweep``: the noise sweep on the default synthetic test scenes.
 
     Writes the JSON to ``json_path`` and the chart next to it (same name, .png).
     """
     rig = load_rig()
+    size = size or default_scene_size(rig)
     scenes = [scene_pixels(scene, rig, require_normals=True) for scene in default_split("test", rig, size, seed)]
     start = time.perf_counter()
     document = noise_sweep(scenes, noise_scales, methods, seed, progress)

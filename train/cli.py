@@ -113,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     scenes = commands.add_parser("scenes", help="synthetic scene sets").add_subparsers(dest="scenes_command", required=True, metavar="{synth}")
     synth = scenes.add_parser("synth", help="write the default synthetic scene set (train/ and test/ splits)")
     synth.add_argument("--out", type=_path, required=True, help="output folder")
-    synth.add_argument("--size", type=_size, default=(128, 153), help="image size HxW (default 128x153; full 512x612)")
+    synth.add_argument("--size", type=_size, default=None, help="image size HxW (default: a quarter of the rig camera's, 128x153 on the reference rig; full 512x612)")
     synth.add_argument("--seed", type=int, default=0, help="seed of the scene set (shapes, materials, textures)")
     synth.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
     synth.add_argument("--cast-shadows", action="store_true", help="trace cast shadows (slower)")
@@ -429,11 +429,11 @@ def _bench(args) -> None:
     if args.sweep:
         if args.target != "ps":
             raise InputError(f"--sweep applies to target ps, not {args.target!r}")
-        from train.bench import DEFAULT_SIZE, run_sweep
+        from train.bench import run_sweep
 
         # The chart goes next to the JSON, same name, .png; both are checked before the work.
         refuse_overwriting([("--json", args.json), ("chart", None if args.json is None else args.json.with_suffix(".png"))], [])
-        document = run_sweep(args.json, args.size or DEFAULT_SIZE)
+        document = run_sweep(args.json, args.size)
         for row in document["methods"]:
             print(f"{row['label']:36s} " + "  ".join(f"{scale:g}: {mae:.3f}" for scale, mae in zip(document["noise_scales"], row["mae"])))
         if args.json is not None:
@@ -448,7 +448,8 @@ def _scenes_synth(args) -> None:
     from capture_sim.synth import write_scene_set
 
     check_output_folder(args.out, "scenes synth")
-    index_path = write_scene_set(args.out, rig=load_rig(args.rig), height=args.size[0], width=args.size[1], seed=args.seed, cast_shadows=args.cast_shadows)
+    height, width = (None, None) if args.size is None else args.size
+    index_path = write_scene_set(args.out, rig=load_rig(args.rig), height=height, width=width, seed=args.seed, cast_shadows=args.cast_shadows)
     print(f"wrote the scene set to {args.out} (index: {index_path})")
 
 

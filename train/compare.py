@@ -39,7 +39,7 @@ from capture_sim.display import display_emission
 from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import CONFIG_DIR, load_rig
 from capture_sim.scene import scene_paths
-from capture_sim.synth import GENERATOR
+from capture_sim.synth import GENERATOR, default_scene_size
 from patterns.io import save_patterns
 from train.capture import scene_exposure
 from train.compare_config import CompareConfig, compare_config_to_dict, load_compare_config, rig_exposure_ms
@@ -359,7 +359,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     rig = load_rig(config.rig)
     exposure_ms, exposure_source = rig_exposure_ms(rig)
     resolved = compare_config_to_dict(config)
-    test_raw = resolve_scenes(tuple(config.test_scenes), "test", rig, tuple(config.scene_size), config.scene_seed)
+    test_raw = resolve_scenes(tuple(config.test_scenes), "test", rig, config.scene_size, config.scene_seed)
     test_scenes = [scene_pixels(scene, rig, require_normals=True) for scene in test_raw]
     free_scenes, free_reason = specular_free_scenes(test_raw, rig) if config.specular_free_check else (None, None)
     del test_raw  # learning runs next: keep the prepared pixels only, not the full-frame stacks
@@ -439,7 +439,8 @@ def _scene_set_matches(index_path: Path, rig, config: CompareConfig) -> bool:
         index = json.loads(index_path.read_text())
     except (OSError, ValueError):
         return False
-    wanted = {"generator": GENERATOR, "rig": rig.name, "height": config.scene_size[0], "width": config.scene_size[1],
+    height, width = config.scene_size or default_scene_size(rig)
+    wanted = {"generator": GENERATOR, "rig": rig.name, "height": height, "width": width,
               "seed": config.scene_seed, "cast_shadows": False}
     if not (isinstance(index, dict) and all(index.get(key) == value for key, value in wanted.items())):
         return False
@@ -478,7 +479,8 @@ def run_demo(out_dir: Path, progress: bool = True, config_path: Path | None = No
     rig = load_rig(config.rig)
     scene_dir = out_dir / "scenes"
     if not _scene_set_matches(scene_dir / "index.json", rig, config):
-        write_scene_set(scene_dir, rig, config.scene_size[0], config.scene_size[1], config.scene_seed, progress=progress)
+        height, width = config.scene_size or default_scene_size(rig)
+        write_scene_set(scene_dir, rig, height, width, config.scene_seed, progress=progress)
     # Absolute paths: the learned and searched runs record them in their configs, and a rerun
     # reuses those runs however --out is spelled and whatever the working directory.
     scene_dir = scene_dir.resolve()

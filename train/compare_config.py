@@ -120,8 +120,9 @@ class CompareConfig:
     """Held-out scenes of every reported number; empty = the default synthetic test split."""
     rig: str = DEFAULT_RIG
     """Rig preset or TOML path."""
-    scene_size: tuple[int, int] = (128, 153)
-    """Image size of the default synthetic scenes."""
+    scene_size: tuple[int, int] | None = None
+    """Image size (height, width) of the default synthetic scenes; None: a quarter of the rig
+    camera's resolution (``capture_sim.synth.default_scene_size``: 128 x 153 on the reference rig)."""
     scene_seed: int = 0
     """Seed of the default synthetic scenes."""
     eval_seed: int = 0
@@ -231,7 +232,7 @@ class CompareConfig:
         """TrainConfig from the override ``values`` plus the fields the comparison sets."""
         values = dict(values)
         values.update(num_patterns=num_patterns, seed=seed, rig=self.rig, scenes=list(self.train_scenes),
-                      val_scenes=list(self.test_scenes), scene_size=list(self.scene_size), scene_seed=self.scene_seed,
+                      val_scenes=list(self.test_scenes), scene_size=None if self.scene_size is None else list(self.scene_size), scene_seed=self.scene_seed,
                       noise_scale=self.default_noise)
         values["rerender_weight"] = self.rerender_weight if rerender else 0.0
         return config_from_dict(TrainConfig, values, source=source)
@@ -244,7 +245,7 @@ class CompareConfig:
         """The SearchConfig of one [[search]] run (training scenes, default noise)."""
         return SearchConfig(family=run.family, num_patterns=run.num_patterns, algorithm=run.algorithm, maxeval=run.maxeval,
                             maxtime=run.maxtime, seed=run.seed, scenes=tuple(self.train_scenes), noise_scale=self.default_noise,
-                            rig=self.rig, scene_size=tuple(self.scene_size), scene_seed=self.scene_seed,
+                            rig=self.rig, scene_size=None if self.scene_size is None else tuple(self.scene_size), scene_seed=self.scene_seed,
                             pixels_per_scene=run.pixels_per_scene)
 
 

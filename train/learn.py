@@ -96,8 +96,9 @@ class TrainConfig:
     val_scenes: tuple[str, ...] = ()
     """Validation scenes (logged only, never used to pick patterns); empty = the default synthetic
     test split when training on the default scenes, and no validation when ``scenes`` are given."""
-    scene_size: tuple[int, int] = (128, 153)
-    """Image size of the default synthetic scenes."""
+    scene_size: tuple[int, int] | None = None
+    """Image size (height, width) of the default synthetic scenes; None: a quarter of the rig
+    camera's resolution (``capture_sim.synth.default_scene_size``: 128 x 153 on the reference rig)."""
     scene_seed: int = 0
     """Seed of the default synthetic scenes."""
     rig: str = DEFAULT_RIG
@@ -121,7 +122,7 @@ class TrainConfig:
         for name, least in (("num_patterns", 1), ("pixels_per_scene", 1), ("steps", 0)):
             if getattr(self, name) < least:
                 raise InputError(f"{name} must be >= {least}, got {getattr(self, name)}")
-        if not all(side >= 2 for side in self.scene_size):
+        if self.scene_size is not None and not all(side >= 2 for side in self.scene_size):
             raise InputError(f"scene_size must be at least [2, 2] (height, width), got {list(self.scene_size)}")
         if self.solver not in SOLVERS:
             raise InputError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")

@@ -3,9 +3,7 @@ from __future__ import annotations
 
 from capture_sim.rig import Rig
 from capture_sim.scene import Scene, load_scene, scene_paths
-from capture_sim.synth import default_scene_set
-
-DEFAULT_SIZE = (128, 153)
+from capture_sim.synth import default_scene_set, default_scene_size
 
 
 _CACHE_SIZE = 4
@@ -19,6 +17,8 @@ def _rig_key(rig: Rig) -> tuple:
 
 
 def _default_set(rig: Rig, height: int, width: int, seed: int) -> dict:
+    if height is None and width is None:
+        height, width = default_scene_size(rig)
     key = (_rig_key(rig), height, width, seed)
     if key not in _cache:
         if len(_cache) >= _CACHE_SIZE:
@@ -27,12 +27,14 @@ def _default_set(rig: Rig, height: int, width: int, seed: int) -> dict:
     return _cache[key]
 
 
-def default_split(split: str, rig: Rig, size: tuple[int, int] = DEFAULT_SIZE, seed: int = 0) -> list[Scene]:
-    """The ``"train"`` or ``"test"`` split of the default synthetic set (made once per process)."""
-    return list(_default_set(rig, size[0], size[1], seed)[split])
+def default_split(split: str, rig: Rig, size: tuple[int, int] | None = None, seed: int = 0) -> list[Scene]:
+    """The ``"train"`` or ``"test"`` split of the default synthetic set (made once per process) at
+    ``size`` (height, width; None: ``capture_sim.synth.default_scene_size``, a quarter of the rig camera's)."""
+    height, width = (None, None) if size is None else size
+    return list(_default_set(rig, height, width, seed)[split])
 
 
-def resolve_scenes(paths, split: str, rig: Rig, size: tuple[int, int] = DEFAULT_SIZE, seed: int = 0) -> list[Scene]:
+def resolve_scenes(paths, split: str, rig: Rig, size: tuple[int, int] | None = None, seed: int = 0) -> list[Scene]:
     """Scenes from files/folders in ``paths``, or the default set's ``split`` when ``paths`` is empty."""
     if paths:
         return [load_scene(path) for path in scene_paths(paths)]

@@ -102,8 +102,9 @@ class SearchConfig:
     """Multiplier of the rig's noise variances (0 = noise-free, unquantised)."""
     rig: str = DEFAULT_RIG
     """Rig preset or TOML path."""
-    scene_size: tuple[int, int] = (128, 153)
-    """Image size of the default synthetic scenes."""
+    scene_size: tuple[int, int] | None = None
+    """Image size (height, width) of the default synthetic scenes; None: a quarter of the rig
+    camera's resolution (``capture_sim.synth.default_scene_size``: 128 x 153 on the reference rig)."""
     scene_seed: int = 0
     """Seed of the default synthetic scenes."""
     sharpness: float = 4.0
@@ -373,7 +374,7 @@ def minimise(
 
 def prepare_scenes(paths, split: str, rig, size: tuple[int, int], seed: int) -> list[ScenePixels]:
     """Scenes with true normals, from files/folders or the default synthetic ``split``."""
-    scenes = [scene_pixels(scene, rig, require_normals=True) for scene in resolve_scenes(tuple(paths), split, rig, tuple(size), seed)]
+    scenes = [scene_pixels(scene, rig, require_normals=True) for scene in resolve_scenes(tuple(paths), split, rig, size, seed)]
     if not scenes:
         raise InputError("no scenes to search on")
     return scenes
