@@ -124,6 +124,10 @@ def validate_scene(scene: Scene) -> None:
     # Upper triangular with a positive diagonal, so invertible; K[1, 0] would otherwise be ignored.
     if not (intrinsics[0, 0] > 0 and intrinsics[1, 1] > 0 and intrinsics[1, 0] == 0 and np.array_equal(intrinsics[2], [0.0, 0.0, 1.0])):
         raise InputError(f"{name}: K_cam must be upper triangular with fx, fy > 0 and last row (0, 0, 1), got {intrinsics.tolist()}")
+    centre_x, centre_y = float(intrinsics[0, 2]), float(intrinsics[1, 2])
+    if not (0 <= centre_x <= width and 0 <= centre_y <= height):
+        warnings.warn(f"{name}: K_cam's principal point ({centre_x:g}, {centre_y:g}) lies outside the {height} x {width} image "
+                      "(intrinsics of another image size?)", DisplexWarning, stacklevel=3)
     check_light_positions(f"{name}: light_positions", scene.light_positions)
     rows, cols = scene.light_positions.shape[:2]
     if rows * cols != num_lights:

@@ -403,6 +403,10 @@ def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tm
     sheared[0, 1] = sheared[0, 0]
     with pytest.raises(InputError, match="K_cam must be upper triangular"):
         validate_scene(dataclasses.replace(scene, K_cam=sheared))
+    elsewhere = scene.K_cam.copy()
+    elsewhere[:2, 2] *= 5  # the intrinsics of a larger image
+    with pytest.warns(DisplexWarning, match=rf"principal point \({elsewhere[0, 2]:g}, {elsewhere[1, 2]:g}\) lies outside the {scene.height} x {scene.width} image"):
+        validate_scene(dataclasses.replace(scene, K_cam=elsewhere))
     with pytest.raises(InputError, match="depth must be in metres, but its median inside the mask is 4.*millimetres"):
         validate_scene(dataclasses.replace(scene, depth=scene.depth * 1000))
     from capture_sim.scene import rig_for_scene
