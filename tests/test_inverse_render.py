@@ -694,7 +694,8 @@ def test_run_invrender_bad_settings_raise(scene_file, bad):
 def test_invrender_thread_settings_from_python_use_the_cli_check(scene_file):
     """InvRenderConfig and bench_invrender refuse what `displex --threads` refuses, with its message."""
     from capture_sim.errors import MAX_THREADS, check_thread_count
-    from train.invrender_command import InvRenderConfig, bench_invrender
+    from train.bench_invrender import bench_invrender
+    from train.invrender_command import InvRenderConfig
 
     assert check_thread_count(0) == 0 and check_thread_count(MAX_THREADS) == MAX_THREADS
     for bad in (-1, MAX_THREADS + 1, 2.0, True):
@@ -721,6 +722,7 @@ def test_run_invrender_failure_leaves_the_earlier_run_whole(tmp_path, scene_file
     finished run left it, logs included: no folder mixing two runs, no staging leftovers; a fresh
     --out is not left behind at all."""
     import train.invrender_command as command
+    import train.invrender_figures as figures
 
     def tree(folder):
         return {str(path.relative_to(folder)): path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()}
@@ -729,13 +731,13 @@ def test_run_invrender_failure_leaves_the_earlier_run_whole(tmp_path, scene_file
     command.run_invrender(command.InvRenderConfig(scene=scene_file, out=out, basis="1", iterations=2))
     before = tree(out)
     assert any(name.startswith("tensorboard/events") for name in before)
-    write_png = command.write_png
+    write_png = figures.write_png
 
     def broken(path, image):
         write_png(path, image)
         raise RuntimeError("disk failed")
 
-    monkeypatch.setattr(command, "write_png", broken)
+    monkeypatch.setattr(figures, "write_png", broken)
     for folder in (out, fresh):
         with pytest.raises(RuntimeError):
             command.run_invrender(command.InvRenderConfig(scene=scene_file, out=folder, basis="1", iterations=3, seed=9))

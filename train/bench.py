@@ -37,6 +37,7 @@ from train.learn import EXPOSURE_PIXELS, TrainConfig, normal_loss
 from train.evaluate import EvalSettings, evaluate_scene
 from train.scene_pixels import ScenePixels, scene_pixels, shuffle_pixels
 from train.scene_sets import default_split
+from train.torch_threads import torch_threads
 
 FULL_SIZE = (512, 612)
 PUBLISHED_PS_FORWARD_S = 1.2
@@ -190,12 +191,8 @@ def bench_ps(num_patterns: int = 4, repeats: int = 5, seed: int = 0) -> dict:
     forward = median_seconds(lambda: solve_ps(capture.captures, capture.emission, points, lights, falloff), repeats, warmup=0)
     # The solver is many small per-pixel operations besides the large matrix products: measure
     # whether torch's intra-op threads pay off on this machine.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with torch_threads(1):
         single_thread = median_seconds(forward_backward, repeats, warmup=0)
-    finally:
-        torch.set_num_threads(threads)
     errors = angular_error_deg(estimate, true_normal)
     replica = published_ps_seconds(capture.captures, capture.emission, points, lights, falloff, repeats)
     scale = num_pixels / PUBLISHED_PIXELS
@@ -206,7 +203,7 @@ def bench_ps(num_patterns: int = 4, repeats: int = 5, seed: int = 0) -> dict:
         "lights": num_lights,
         "full_fwd_bwd_s": seconds,
         "full_fwd_s": forward,
-        "threads": threads,
+        "threads": torch.get_num_threads(),
         "full_fwd_bwd_s_1_thread": single_thread,
         "peak_rss_mb": peak_mb,
         "peak_measured": "solver phase (VmHWM reset before it)" if peak_reset else "whole process",
@@ -315,8 +312,8 @@ def bench_train(num_patterns: int = 4, sampled_pixels: int = 100_000, repeats: i
 
 
 def bench_invrender(repeats: int = 5) -> dict:
-    """Inverse-renderer speed (see ``train.invrender_command.bench_invrender``)."""
-    from train.invrender_command import bench_invrender as run
+    """Inverse-renderer speed (see ``train.bench_invrender.bench_invrender``)."""
+    from train.bench_invrender import bench_invrender as run
 
     return {"target": "invrender", **run(repeats=repeats), "machine": machine_info()}
 

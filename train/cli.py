@@ -541,15 +541,11 @@ def _run(argv: list[str] | None) -> int:
         print(f"displex: error: {one_line(str(err).removeprefix('displex ').removeprefix('displex: '))}", file=sys.stderr)
         return 2
     if not args.torch_threads:
-        return _handle(args)
-    import torch
+        return _handle(args)  # without importing torch: `displex --help` stays quick
+    from train.torch_threads import torch_threads
 
-    previous = torch.get_num_threads()
-    torch.set_num_threads(args.torch_threads)
-    try:
+    with torch_threads(args.torch_threads):  # run() is also called in-process
         return _handle(args)
-    finally:  # run() is also called in-process
-        torch.set_num_threads(previous)
 
 
 def _handle(args) -> int:
