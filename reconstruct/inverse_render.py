@@ -290,7 +290,7 @@ class FitProblem:
     height: int
     width: int
 
-    def patterns(self, index: torch.Tensor) -> "FitProblem":
+    def with_patterns(self, index: torch.Tensor) -> "FitProblem":
         """The same scene with only the patterns (captures and emission rows) ``index``."""
         return FitProblem(self.captures[index], self.emission[index], self.points, self.lights, self.falloff,
                           self.pixel_index, self.height, self.width)
@@ -342,6 +342,12 @@ def _check_fit_inputs(captures, emission, points, lights, pixel_index, height, w
         raise InputError("pixel_index must hold distinct integer pixel indices")
     if int(pixel_index.min()) < 0 or int(pixel_index.max()) >= height * width:
         raise InputError(f"pixel_index must lie in [0, {height * width}) for a {height} x {width} image")
+
+
+EMISSION_RANGE = (1e-30, 1e30)
+"""Emission peaks the inverse renderer accepts (albedos scale inversely and must fit float32)."""
+TYPICAL_ALBEDO = 0.5
+"""The fit runs in albedo units where the 90th percentile albedo is near this."""
 
 
 def fit_inverse_render(
@@ -412,12 +418,6 @@ def fit_inverse_render(
         model = _initial_model(captures, emission, points, lights, falloff, dataclasses.replace(initial, albedo=initial.albedo / unit), config)
     result = _optimise(model, captures, emission, points, lights, falloff, pixel_index, height, width, config, log, start)
     return scale_albedos(result, unit)
-
-
-EMISSION_RANGE = (1e-30, 1e30)
-"""Emission peaks the inverse renderer accepts (albedos scale inversely and must fit float32)."""
-TYPICAL_ALBEDO = 0.5
-"""The fit runs in albedo units where the 90th percentile albedo is near this."""
 
 
 def albedo_unit(albedo: torch.Tensor) -> float:

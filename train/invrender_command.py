@@ -143,7 +143,7 @@ class _Data:
     olat_exposure: float
     olat_captures: torch.Tensor  # (K_fit, N, 3) OLAT captures of the fit lights (noise-free with noise 'off')
     test_truth: torch.Tensor  # (K_test, N, 3) noise-free e_olat * O[test]
-    describe: dict
+    description: dict  # what the fit captures are, for result.json's "data"
 
 
 def _prepare_data(config: InvRenderConfig, scene, rig, pixels, split) -> _Data:
@@ -161,7 +161,7 @@ def _prepare_data(config: InvRenderConfig, scene, rig, pixels, split) -> _Data:
             captures = olat_captures
             emission = olat_emission(split.fit, pixels.transport.num_lights, olat_exposure)
             exposure, setting = olat_exposure, "auto"
-            describe = {"patterns": "olat", "M": int(split.fit.numel()), "pattern_meta": {}}
+            description = {"patterns": "olat", "M": int(split.fit.numel()), "pattern_meta": {}}
         else:
             values, pattern_meta = load_patterns(config.patterns)
             check_patterns_match_rig(values, rig.rows, rig.cols, rig.name)
@@ -170,15 +170,15 @@ def _prepare_data(config: InvRenderConfig, scene, rig, pixels, split) -> _Data:
             exposure = resolve_exposure(setting, pattern_set, scene, rig)
             capture = simulate(pattern_set, pixels.transport, rig, exposure=exposure, noise=noise_model, bit_depth=bits, generator=generator)
             captures, emission, exposure = capture.captures, capture.emission, capture.exposure
-            describe = {"patterns": str(config.patterns), "M": int(values.shape[0]), "pattern_meta": pattern_meta}
-    describe.update({
+            description = {"patterns": str(config.patterns), "M": int(values.shape[0]), "pattern_meta": pattern_meta}
+    description.update({
         "exposure": exposure,
         "exposure_mode": "auto" if setting == "auto" else "fixed",
         "olat_exposure": olat_exposure,
         "noise": None if noise_free else {"shot": rig.noise.shot, "read_std": rig.noise.read_std, "bit_depth": rig.bit_depth},
         "saturated_fraction": float((captures >= 1.0).double().mean()),
     })
-    return _Data(captures, emission, exposure, olat_exposure, olat_captures, test_truth, describe)
+    return _Data(captures, emission, exposure, olat_exposure, olat_captures, test_truth, description)
 
 
 TENSORBOARD_FOLDER = "tensorboard"
@@ -357,7 +357,7 @@ def _fit_and_evaluate(config: InvRenderConfig, scene, pixels, split, data: _Data
                 "fit_config": _jsonable(asdict(fit_config))},
         "initial_estimate": {"valid_fraction": float(initial.valid.double().mean()),
                              **({"normal_error": normal_error_stats(initial.normal, pixels.normal)} if pixels.normal is not None else {})},
-        "data": data.describe,
+        "data": data.description,
         "timings": timings,
         "threads": torch.get_num_threads(),
         "config": config.to_dict(),
@@ -378,10 +378,11 @@ def _select(config, data: _Data, split, problem: FitProblem, initial, template, 
     validation_position = torch.searchsorted(split.fit, split.validation)
     validation_images = data.olat_captures[validation_position]
     validation_emission = olat_emission(split.validation, num_lights, data.olat_exposure)
+    candidates_problem, candidates_initial = problem, initial
     if config.patterns == "olat":
-        # The fit captures are the fit lights' OLAT images: drop the validation lights' rows.
-        problem = problem.patterns(torch.searchsorted(split.fit, split.train))
-        initial = problem.initial_estimate()
+        # The fit captures are the fit lights' OLAT images: the candidates leave the validation lights' rows out.
+        candidates_problem = problem.with_patterns(torch.searchsorted(split.fit, split.train))
+        candidates_initial = candidates_problem.initial_estimate()
 
     bar = tqdm(total=config.selection.max_candidates, desc="model selection", unit="fit", disable=not progress)
 
@@ -392,7 +393,7 @@ def _select(config, data: _Data, split, problem: FitProblem, initial, template, 
         bar.set_postfix(J=num_basis, lobes=lobes, psnr=f"{candidate.psnr:.2f}")
 
     try:
-        selection = select_basis(problem, validation_emission, validation_images, template, config.selection, initial, log)
+        selection = select_basis(candidates_problem, validation_emission, validation_images, template, config.selection, candidates_initial, log)
         # A sweep that stopped early (patience) is complete: end the bar full, not at e.g. 6/16.
         bar.total = bar.n
         bar.refresh()

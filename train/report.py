@@ -211,10 +211,15 @@ def _style(kind: str, series: str = "") -> dict:
     return style
 
 
+def _marker_style(kind: str, series: str) -> dict:
+    """``_style`` for a scatter of markers: its line settings dropped."""
+    return {key: value for key, value in _style(kind, series).items() if key not in ("linewidth", "linestyle")}
+
+
 def _series(rows: list[dict]) -> dict:
     series: dict = defaultdict(list)
     for row in rows:
-        series[(row["kind"], row["label"] if row["kind"] != "learned" else "learned", row["series"])].append(row)
+        series[(row["kind"], row["label"], row["series"])].append(row)  # every seed's label is "learned" (``aggregate_rows``)
     return {key: sorted(values, key=lambda r: r["M"]) for key, values in sorted(series.items(), key=lambda item: _KIND_ORDER.get(item[0][0], 9))}
 
 
@@ -296,9 +301,7 @@ def chart_mae_vs_cost(rows: list[dict], key: str, xlabel: str, title: str, capti
     for (kind, label, series), values in _series(rows).items():
         xs = [max(row[key], 1e-6) for row in values]
         ys = [row["mae"] for row in values]
-        style = _style(kind, series)
-        style.pop("linewidth", None)
-        style.pop("linestyle", None)
+        style = _marker_style(kind, series)
         ax.plot(xs, ys, linestyle="none", markersize=7 if kind != "heuristic" else 9, label=label, **style)
         if kind != "heuristic":  # heuristics share their M's positions: labels there would pile up
             labelled += [(x, y, row["M"]) for x, y, row in zip(xs, ys, values)]
@@ -327,7 +330,7 @@ def chart_mae_vs_noise(results: dict, caption: str):
         for noise in noises:
             for row in per_noise[noise]:
                 if row["M"] == count or row["kind"] == "reference":
-                    keys.setdefault((row["kind"], row["label"] if row["kind"] != "learned" else "learned", row["series"]), []).append((noise, row["mae"]))
+                    keys.setdefault((row["kind"], row["label"], row["series"]), []).append((noise, row["mae"]))
         for (kind, label, series), points in sorted(keys.items(), key=lambda item: _KIND_ORDER.get(item[0][0], 9)):
             style = _style(kind, series)
             if kind == "reference":
@@ -364,9 +367,7 @@ def chart_specular_free(rows: list[dict], free_rows: list[dict], caption: str):
         points = [(free[(row["series"], row["M"])], row["mae"], row["M"]) for row in values if (row["series"], row["M"]) in free]
         if not points:
             continue
-        style = _style(kind, series)
-        style.pop("linewidth", None)
-        style.pop("linestyle", None)
+        style = _marker_style(kind, series)
         ax.plot([p[0] for p in points], [p[1] for p in points], linestyle="none", markersize=7 if kind != "heuristic" else 9, label=label, **style)
         if kind != "heuristic":
             labelled += points
@@ -426,7 +427,7 @@ def pattern_entries(results: dict, rows: list[dict], pattern_sets: dict) -> list
         heuristics = [row for row in rows if row["kind"] == "heuristic" and row["M"] == count]
         if heuristics:
             best = min(heuristics, key=lambda row: row["mae"])
-            method_id = f"heuristic_{best['series']}_M{count}"
+            method_id = next((m["id"] for m in results["methods"] if m["kind"] == "heuristic" and m["series"] == best["series"] and m["M"] == count), None)
             if method_id in pattern_sets:
                 entries.append((f"best heuristic, M = {count}: {best['series']} ({best['mae']:.1f} deg)", pattern_sets[method_id]))
         for method in results["methods"]:

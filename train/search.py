@@ -396,7 +396,8 @@ class PatternObjective:
     """
 
     def __init__(self, family: str, num_patterns: int, scenes: list[ScenePixels], rows: int, cols: int,
-                 noise_scale: float = 1.0, sharpness: float = 4.0, pixels_per_scene: int = 3000, seed: int = 0,
+                 noise_scale: float = SearchConfig.noise_scale, sharpness: float = SearchConfig.sharpness,
+                 pixels_per_scene: int = SearchConfig.pixels_per_scene, seed: int = 0,
                  ps_config: PSConfig = PSConfig()):
         self.family = get_family(family)
         self.family.check(num_patterns, rows, cols)
