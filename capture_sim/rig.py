@@ -161,6 +161,13 @@ class Falloff:
         return f"falloff {self.kind}" + (f" (a={self.a:g}, b={self.b:g})" if self.kind == "fitted" else "")
 
 
+def check_falloff(falloff) -> None:
+    """Raise ``InputError`` unless ``falloff`` can be called with distances (a ``Falloff``, or any
+    function of a tensor of metres): a solver would otherwise fail deep inside with a TypeError."""
+    if not callable(falloff):
+        raise InputError(f"falloff must be a function of distance in metres (e.g. capture_sim.rig.Falloff()), got {falloff!r}")
+
+
 def checked_falloff(falloff, distance: torch.Tensor) -> torch.Tensor:
     """The falloff factors at ``distance``, refused unless positive and finite (DESIGN section 3: a
     fitted falloff can be negative or infinite at distances its fit did not cover).
@@ -177,6 +184,7 @@ def checked_falloff(falloff, distance: torch.Tensor) -> torch.Tensor:
     Raises:
         InputError: a factor is not positive and finite.
     """
+    check_falloff(falloff)
     wide = distance.to(torch.promote_types(distance.dtype, torch.float32))
     values = torch.as_tensor(falloff(wide), dtype=wide.dtype).expand(wide.shape)
     if not bool(torch.isfinite(values).all()) or bool((values <= 0).any()):

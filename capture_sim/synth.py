@@ -24,7 +24,7 @@ import torch
 from tqdm import tqdm
 
 from capture_sim.atomic import check_replaceable, staged_files, write_json
-from capture_sim.errors import MAX_SEED, DisplexWarning, InputError, check_seed
+from capture_sim.errors import MAX_SEED, DisplexWarning, InputError, check_seed, is_whole_number
 from capture_sim.materials import MATERIALS, make_material
 from capture_sim.render import render_olat
 from capture_sim.rig import Rig
@@ -48,6 +48,16 @@ def default_scene_size(rig: Rig) -> tuple[int, int]:
     return tuple(max(2, round(side / SCENE_SIZE_DIVISOR)) for side in (rig.camera.height, rig.camera.width))
 
 
+def scene_size(rig: Rig, height: int | None, width: int | None) -> tuple[int, int]:
+    """(height, width) of synthetic scenes: the size given, or ``default_scene_size`` when both
+    are None; ``InputError`` unless both are positive whole numbers."""
+    if height is None and width is None:
+        return default_scene_size(rig)
+    if not (is_whole_number(height, 1) and is_whole_number(width, 1)):
+        raise InputError(f"image size must be positive integers, got {height} x {width}")
+    return int(height), int(width)
+
+
 def check_scene_aspect(rig: Rig, height: int, width: int) -> None:
     """Warn when ``height`` x ``width`` has another aspect ratio than the rig's camera by more than
     a pixel's rounding: the camera's intrinsics are scaled to the size per axis, so its pixels
@@ -57,7 +67,7 @@ def check_scene_aspect(rig: Rig, height: int, width: int) -> None:
         square = (height, max(2, round(height * rig.camera.width / rig.camera.height)))
         warnings.warn(f"{height} x {width} scenes have another aspect ratio than rig {rig.name}'s {rig.camera.height} x "
                       f"{rig.camera.width} camera: their pixels are not square (x scaled by {scale_x:.3g}, y by {scale_y:.3g}); "
-                      f"{square[0]} x {square[1]} would keep them square", DisplexWarning, stacklevel=3)
+                      f"{square[0]} x {square[1]} would keep them square", DisplexWarning, stacklevel=2)
 
 
 def synthesize_scene(
@@ -94,11 +104,9 @@ def synthesize_scene(
         raise InputError(f"unknown shape {shape!r}; choose from {', '.join(SHAPES)}")
     if material not in MATERIALS:
         raise InputError(f"unknown material {material!r}; choose from {', '.join(MATERIALS)}")
-    if height is None or width is None:
-        height, width = default_scene_size(rig) if height is None and width is None else (height, width)
-    if not isinstance(height, (int, np.integer)) or not isinstance(width, (int, np.integer)) or height < 1 or width < 1:
-        raise InputError(f"image size must be positive integers, got {height} x {width}")
-    camera_rig = rig.with_resolution(int(height), int(width))
+    height, width = scene_size(rig, height, width)
+    check_scene_aspect(rig, height, width)
+    camera_rig = rig.with_resolution(height, width)
     K_cam = camera_rig.camera.matrix()
 
     surface = make_shape(shape, seed=seed, distance=rig.working_distance)
@@ -107,7 +115,7 @@ def synthesize_scene(
         # Pixel centres can all miss an object at a tiny size (or a rig whose camera looks away).
         raise InputError(
             f"the {shape} covers no pixel centre of a {height} x {width} image with rig {rig.name}'s camera; "
-            "use a larger image size (default 128 x 153)"
+            "use a larger image size (the default is a quarter of the rig camera's resolution)"
         )
     brdf = make_material(material, hits.points, seed=seed, albedo=albedo)
 
@@ -240,8 +248,7 @@ def default_scene_set(rig: Rig, height: int | None = None, width: int | None = N
     Returns:
         ``{"train": [6 scenes], "test": [4 scenes]}``.
     """
-    if height is None and width is None:
-        height, width = default_scene_size(rig)
+    height, width = scene_size(rig, height, width)
     scenes: dict[str, list[Scene]] = {split: [] for split in default_scene_specs(seed)}
     for split, _, scene in _synthesised(rig, height, width, seed, cast_shadows, "synthesising the default scenes", progress, leave=False):
         scenes[split].append(scene)
@@ -251,7 +258,6 @@ def default_scene_set(rig: Rig, height: int | None = None, width: int | None = N
 def _synthesised(rig: Rig, height: int, width: int, seed: int, cast_shadows: bool, description: str, progress: bool, leave: bool = True):
     """Yield (split, spec, scene) for every scene of the default set, one at a time, with a bar
     (``leave``: keep the finished bar on screen)."""
-    check_scene_aspect(rig, height, width)
     jobs = [(split, spec) for split, specs in default_scene_specs(seed).items() for spec in specs]
     for split, spec in tqdm(jobs, desc=description, unit="scene", disable=not progress, leave=leave):
         yield split, spec, synthesize_scene(spec.shape, spec.material, rig, height, width, spec.seed, cast_shadows, spec.name)
@@ -280,8 +286,7 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int | None = None, wi
         Path of the written ``index.json``.
     """
     out_dir = Path(out_dir)
-    if height is None and width is None:
-        height, width = default_scene_size(rig)
+    height, width = scene_size(rig, height, width)
     index = {
         "generator": GENERATOR,
         "rig": rig.name,

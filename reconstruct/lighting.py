@@ -30,7 +30,7 @@ import torch
 
 from capture_sim.errors import InputError, check_array
 from capture_sim.geometry import view_directions
-from capture_sim.rig import Falloff
+from capture_sim.rig import Falloff, check_falloff
 
 SYMMETRIC_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 """(row, column) of the 6 stored entries of a symmetric 3x3 matrix: xx, yy, zz, xy, xz, yz."""
@@ -72,6 +72,7 @@ class LightField:
         Raises:
             InputError: the falloff is not positive and finite at a pixel with good geometry.
         """
+        check_falloff(falloff)
         self._set_geometry(points, lights, block_size)
         # The unshadowed weights f_k / d_k are computed once and kept (N x K floats): every later
         # evaluation then costs a shadow test and a matrix product instead of the distances again.

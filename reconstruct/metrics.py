@@ -109,7 +109,9 @@ def psnr(prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> f
     """PSNR in dB over the masked pixels of linear images (peak value 1).
 
     Args:
-        prediction: (..., H, W, 3) images in [0, 1].
+        prediction: (..., H, W, 3) images, full scale 1. Values are compared as given, not
+            clipped: ``reconstruct.relight.relighting_metrics`` clips both images to [0, 1] first,
+            as a sensor does, and gives another number for images that leave that range.
         truth: (..., H, W, 3) reference images.
         mask: (H, W) bool, pixels to compare (must select at least one).
 
@@ -128,7 +130,7 @@ def ssim(prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, wind
     """Mean SSIM over the masked pixels of linear images (peak value 1).
 
     Args:
-        prediction: (..., H, W, 3) images in [0, 1].
+        prediction: (..., H, W, 3) images, full scale 1, compared as given (see ``psnr``).
         truth: (..., H, W, 3) reference images.
         mask: (H, W) bool, pixels to average over (must select at least one).
         window_size: odd Gaussian window of the SSIM, shrunk to fit small images.

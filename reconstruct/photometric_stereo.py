@@ -29,7 +29,8 @@ searched value with that derivative, so values do not depend on gradient trackin
 alternation plus the per-pixel 3x3 Jacobian dPhi/da in closed form
 (``pixel_solve.alternation_jacobian``); the shadowed (pixels x lights) weights are re-formed
 block by block in the backward pass instead of being kept. Unrolling a few alternations from a
-detached start would be cheaper but biased. The gradient is the same in every configuration;
+detached start would be cheaper but biased. Pixels flagged not_converged get no gradient (zero): their value is no fixed point, and the
+step's derivative there can even have the wrong sign. The gradient is the same in every configuration;
 ``torch.autograd.gradcheck`` needs tight convergence (tolerance_deg=1e-10, max_alternations=1000,
 as in tests/test_photometric_stereo.py) because finite differences of the solver are otherwise
 limited by its stopping tolerance.
@@ -42,7 +43,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from capture_sim.errors import InputError, check_array, check_field_types
+from capture_sim.errors import InputError, check_array, check_field_types, is_whole_number
 from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, finite_albedo, lighting_matrix
 from reconstruct.pixel_solve import CONDITION_CAP, Moments, alternate, implicit_step, normalised_moments, relative_residual, take_pixels
 from reconstruct.shadow_search import restarted_search
@@ -288,9 +289,12 @@ def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, 
         graph_moments = normalised_moments(vectors, captures, equation_weight, capture_scale)
         graph_albedo, graph_normal = implicit_step(albedo, graph_moments, config.damping)
         # Values stay the searched ones (identical with and without gradient tracking); only the
-        # derivative comes from the Newton step.
-        albedo = albedo + (graph_albedo - graph_albedo.detach())
-        normal = normal + (graph_normal - graph_normal.detach())
+        # derivative comes from the Newton step, and only where the search converged: elsewhere
+        # the value is no fixed point (its masks need not be its normal's), so there is nothing
+        # to differentiate, and the Newton step's derivative can have the wrong sign.
+        converged = state.converged.to(albedo.dtype)
+        albedo = albedo + (graph_albedo - graph_albedo.detach()) * converged
+        normal = normal + (graph_normal - graph_normal.detach()) * converged
     albedo = albedo * (state.moments.capture_scale / state.moments.lighting_scale)
     flags = {"dark": dark, "saturated": saturated, "not_converged": ~state.converged}
     return finalise(normal.T, albedo.T, condition, relative_residual(state.normal, state.moments), flags, light_field, config)
@@ -314,13 +318,20 @@ def concatenate_results(results: list[PSResult], dtype) -> PSResult:
     )
 
 
+MAX_CAPTURE = 8.0
+"""Captures are in full-scale units (1 = the sensor's saturation; values above the saturation
+threshold count as saturated, so unclipped ones are fine). Far beyond 1 they are in other units,
+e.g. raw 8- or 12-bit counts, where every equation would silently count as saturated."""
+
+
 def check_solver_inputs(captures, emission, points, lights, config, chunk_size, config_type, min_patterns: int = 1,
-                        solver: str = "photometric stereo") -> None:
+                        solver: str = "photometric stereo", full_scale: bool = True) -> None:
     """The input checks the solvers share (``solve_ps``, ``reconstruct.woodham.solve_woodham``):
     shapes (captures (M, N, 3), emission (M, K, 3) >= 0, points (N, 3), lights (K, 3)), finite
     values, floating-point tensors, matching sizes, at least ``min_patterns`` captures and one
-    light, a ``config_type`` config and a positive ``chunk_size``. Each failure is one
-    ``InputError`` that names the sizes involved."""
+    light, a ``config_type`` config and a positive whole ``chunk_size``; with ``full_scale``,
+    captures at most ``MAX_CAPTURE``. Each failure is one ``InputError`` that names the sizes
+    involved."""
     check_array("captures", captures, ("M", "N", 3))
     check_array("emission", emission, ("M", "K", 3), value_range=(0.0, math.inf))
     check_array("points", points, ("N", 3))
@@ -341,8 +352,11 @@ def check_solver_inputs(captures, emission, points, lights, config, chunk_size, 
         raise InputError(f"captures have {captures.shape[1]} pixels but points has {points.shape[0]}")
     if not isinstance(config, config_type):
         raise InputError(f"config must be a {config_type.__name__}, got {type(config).__name__}")
-    if chunk_size < 1:
-        raise InputError(f"chunk_size must be positive, got {chunk_size}")
+    if not is_whole_number(chunk_size, 1):
+        raise InputError(f"chunk_size must be a positive whole number, got {chunk_size!r}")
+    if full_scale and captures.numel() and float(captures.detach().max()) > MAX_CAPTURE:
+        raise InputError(f"captures reach {float(captures.detach().max()):g}, but are in full-scale units (1 = the sensor's "
+                         "saturation): raw counts? divide them by the full-scale count (e.g. 4095 for 12 bits)")
 
 
 def _check_inputs(captures, emission, points, lights, config, chunk_size):
@@ -404,7 +418,8 @@ def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSC
 
     Returns:
         PSResult with (N, 3) normals and albedo, (N,) valid, condition, residual and flags. Differentiable
-        w.r.t. ``captures`` and ``emission`` (exact implicit gradients of the converged solution);
+        w.r.t. ``captures`` and ``emission`` (exact implicit gradients of the converged solution;
+        zero at pixels flagged not_converged, valid or not, which have none);
         no gradient flows to points or lights. The albedo is in the emission's units, so its
         gradient grows as 1 / (emission peak)^2: past float32's range for peaks below about 1e-19
         (the normal's stays finite; use float64, or emission in units near 1, to differentiate

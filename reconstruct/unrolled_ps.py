@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import torch
 
 from capture_sim.errors import InputError, check_array, check_field_types
+from capture_sim.rig import check_falloff
 from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, finite_albedo, lighting_matrix, lighting_moments
 from reconstruct.pixel_solve import put_pixels, take_pixels
 from reconstruct.unrolled_alternation import alternate, dot3
@@ -130,6 +131,11 @@ def light_reach(points: torch.Tensor, lights: torch.Tensor, falloff) -> torch.Te
     Raises:
         InputError: the falloff is not positive and finite at every distance.
     """
+    check_falloff(falloff)
+    if not (isinstance(points, torch.Tensor) and isinstance(lights, torch.Tensor)):
+        raise InputError("points and lights must be torch tensors")
+    check_array("points", points, ("N", 3))
+    check_array("lights", lights, ("K", 3))
     lights = lights.to(points.dtype)
     square = torch.cdist(points, lights).square().clamp_min(1e-6)
     if getattr(falloff, "kind", None) == "inverse_square":

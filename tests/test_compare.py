@@ -628,7 +628,7 @@ def test_specular_free_section_states_a_skipped_or_disabled_check():
 def test_rig_file_in_a_compare_config_is_relative_to_the_repository(tmp_path):
     from train.compare_config import compare_config_from_dict
 
-    config = compare_config_from_dict({"rig": "rigs/mine.toml"}, root=tmp_path)
+    config = compare_config_from_dict({"rig": "rigs/mine.toml", "scene_size": [8, 10]}, root=tmp_path)
     assert config.rig == str(tmp_path / "rigs" / "mine.toml")
     assert compare_config_from_dict({"rig": "dir-odyssey-ark"}, root=tmp_path).rig == "dir-odyssey-ark"
 

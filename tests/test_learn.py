@@ -217,7 +217,7 @@ def test_paths_in_config_files_are_relative_to_the_folder_holding_configs(tmp_pa
 
     (tmp_path / "proj" / "configs" / "train").mkdir(parents=True)
     (tmp_path / "loose").mkdir()
-    body = 'rig = "rigs/mine.toml"\nscenes = ["data/a.npz", "/abs/b"]\nval_scenes = ["data/v"]\ninit = "p/start.npz"\n'
+    body = 'rig = "rigs/mine.toml"\nscenes = ["data/a.npz", "/abs/b"]\nval_scenes = ["data/v"]\ninit = "p/start.npz"\nscene_size = [8, 10]\n'
     (tmp_path / "proj" / "configs" / "train" / "t.toml").write_text(body)
     (tmp_path / "loose" / "t.toml").write_text(body)
     monkeypatch.chdir(tmp_path / "loose")

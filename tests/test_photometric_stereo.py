@@ -276,6 +276,34 @@ def test_gradcheck_with_attached_shadows():
     assert _gradcheck_solver(captures, emission, points, lights)
 
 
+def test_pixels_that_did_not_converge_carry_no_gradient():
+    """A not_converged pixel's value is no fixed point (its masks need not be its normal's): the
+    Newton step's derivative there had the wrong sign against finite differences. Such pixels
+    (valid ones too) get a zero gradient; converged pixels keep theirs."""
+    from capture_sim.rig import load_rig
+    from capture_sim.simulator import light_transport, simulate
+    from capture_sim.synth import lambertian_sphere
+    from patterns.families import make_patterns
+
+    rig = load_rig()
+    scene = lambertian_sphere(rig, height=32, width=40)
+    mask = torch.from_numpy(scene.mask)
+    transport = light_transport(scene.olat, scene.mask, dtype=torch.float64)
+    points, lights = scene.points(rig.working_distance)[mask].double(), rig.lights(torch.float64)
+    patterns = make_patterns("mono_gradient", 4).double().clamp(0.05, 0.95)
+    captured = simulate(patterns, transport, rig, exposure=0.003, noise=None, bit_depth=None)
+    fixed_noise = 0.002 * torch.sin(torch.arange(captured.captures.numel(), dtype=torch.float64)).reshape(captured.captures.shape)
+    captures = (captured.captures + fixed_noise).requires_grad_()
+    result = solve_ps(captures, captured.emission.detach(), points, lights, rig.falloff)
+    stuck = result.flags["not_converged"] & result.valid
+    assert bool(stuck.any())  # this scene has some (two pixels at the time of writing)
+    (gradient,) = torch.autograd.grad(result.normal[stuck].sum() + result.albedo[stuck].sum(), captures, allow_unused=True, retain_graph=True)
+    assert gradient is None or not bool(gradient.any())
+    converged = torch.nonzero(~result.flags["not_converged"] & result.valid).squeeze(1)[:3]
+    (gradient,) = torch.autograd.grad(result.normal[converged, 0].sum(), captures)
+    assert bool(gradient.any())
+
+
 @pytest.mark.parametrize(
     "config_class,settings,message",
     [

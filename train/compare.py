@@ -39,7 +39,7 @@ from capture_sim.display import display_emission
 from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import CONFIG_DIR, load_rig
 from capture_sim.scene import scene_paths
-from capture_sim.synth import GENERATOR, default_scene_size
+from capture_sim.synth import GENERATOR
 from patterns.io import save_patterns
 from train.capture import scene_exposure
 from train.compare_config import CompareConfig, compare_config_to_dict, load_compare_config, rig_exposure_ms
@@ -439,7 +439,7 @@ def _scene_set_matches(index_path: Path, rig, config: CompareConfig) -> bool:
         index = json.loads(index_path.read_text())
     except (OSError, ValueError):
         return False
-    height, width = config.scene_size or default_scene_size(rig)
+    height, width = config.scene_size
     wanted = {"generator": GENERATOR, "rig": rig.name, "height": height, "width": width,
               "seed": config.scene_seed, "cast_shadows": False}
     if not (isinstance(index, dict) and all(index.get(key) == value for key, value in wanted.items())):
@@ -479,7 +479,7 @@ def run_demo(out_dir: Path, progress: bool = True, config_path: Path | None = No
     rig = load_rig(config.rig)
     scene_dir = out_dir / "scenes"
     if not _scene_set_matches(scene_dir / "index.json", rig, config):
-        height, width = config.scene_size or default_scene_size(rig)
+        height, width = config.scene_size
         write_scene_set(scene_dir, rig, height, width, config.scene_seed, progress=progress)
     # Absolute paths: the learned and searched runs record them in their configs, and a rerun
     # reuses those runs however --out is spelled and whatever the working directory.

@@ -17,6 +17,7 @@ from patterns.io import names_pattern_file
 from reconstruct.photometric_stereo import PSConfig
 from train.config_io import config_from_dict, config_to_dict, json_value, repository_root, resolve_file_fields, resolve_path
 from train.learn import TrainConfig
+from train.scene_sets import configured_scene_size
 from train.search import SearchConfig
 
 
@@ -121,8 +122,9 @@ class CompareConfig:
     rig: str = DEFAULT_RIG
     """Rig preset or TOML path."""
     scene_size: tuple[int, int] | None = None
-    """Image size (height, width) of the default synthetic scenes; None: a quarter of the rig
-    camera's resolution (``capture_sim.synth.default_scene_size``: 128 x 153 on the reference rig)."""
+    """Image size (height, width) of the default synthetic scenes; None (unset) is replaced on
+    construction by a quarter of the rig camera's resolution (``capture_sim.synth.default_scene_size``:
+    128 x 153 on the reference rig)."""
     scene_seed: int = 0
     """Seed of the default synthetic scenes."""
     eval_seed: int = 0
@@ -132,6 +134,7 @@ class CompareConfig:
     command's --out, relative to the working directory, replaces it)."""
 
     def __post_init__(self):
+        object.__setattr__(self, "scene_size", configured_scene_size(self.scene_size, self.rig))
         counts = list(self.pattern_counts) + list(self.learned_counts or ()) + list(self.rerender_counts)
         counts += [run.num_patterns for run in self.search] + list(self.learned_at) + list(self.learned_seeds_at)
         if not self.pattern_counts:
@@ -232,7 +235,7 @@ class CompareConfig:
         """TrainConfig from the override ``values`` plus the fields the comparison sets."""
         values = dict(values)
         values.update(num_patterns=num_patterns, seed=seed, rig=self.rig, scenes=list(self.train_scenes),
-                      val_scenes=list(self.test_scenes), scene_size=None if self.scene_size is None else list(self.scene_size), scene_seed=self.scene_seed,
+                      val_scenes=list(self.test_scenes), scene_size=list(self.scene_size), scene_seed=self.scene_seed,
                       noise_scale=self.default_noise)
         values["rerender_weight"] = self.rerender_weight if rerender else 0.0
         return config_from_dict(TrainConfig, values, source=source)
@@ -245,7 +248,7 @@ class CompareConfig:
         """The SearchConfig of one [[search]] run (training scenes, default noise)."""
         return SearchConfig(family=run.family, num_patterns=run.num_patterns, algorithm=run.algorithm, maxeval=run.maxeval,
                             maxtime=run.maxtime, seed=run.seed, scenes=tuple(self.train_scenes), noise_scale=self.default_noise,
-                            rig=self.rig, scene_size=None if self.scene_size is None else tuple(self.scene_size), scene_seed=self.scene_seed,
+                            rig=self.rig, scene_size=tuple(self.scene_size), scene_seed=self.scene_seed,
                             pixels_per_scene=run.pixels_per_scene)
 
 

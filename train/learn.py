@@ -37,7 +37,7 @@ from train.config_io import config_to_dict
 from train.evaluate import EvalSettings, evaluate_scene, mean_mae
 from train.scene_pixels import ScenePixels, ShuffledPixels, scene_pixels, shuffle_pixels
 from train.rerender import rerender_loss
-from train.scene_sets import resolve_scenes
+from train.scene_sets import configured_scene_size, resolve_scenes
 
 EXPOSURE_PIXELS = 16384
 """Auto exposure during learning reads at most this many of a scene's pixels (a fixed uniform random
@@ -97,8 +97,9 @@ class TrainConfig:
     """Validation scenes (logged only, never used to pick patterns); empty = the default synthetic
     test split when training on the default scenes, and no validation when ``scenes`` are given."""
     scene_size: tuple[int, int] | None = None
-    """Image size (height, width) of the default synthetic scenes; None: a quarter of the rig
-    camera's resolution (``capture_sim.synth.default_scene_size``: 128 x 153 on the reference rig)."""
+    """Image size (height, width) of the default synthetic scenes; None (unset) is replaced on
+    construction by a quarter of the rig camera's resolution (``capture_sim.synth.default_scene_size``:
+    128 x 153 on the reference rig)."""
     scene_seed: int = 0
     """Seed of the default synthetic scenes."""
     rig: str = DEFAULT_RIG
@@ -122,8 +123,7 @@ class TrainConfig:
         for name, least in (("num_patterns", 1), ("pixels_per_scene", 1), ("steps", 0)):
             if getattr(self, name) < least:
                 raise InputError(f"{name} must be >= {least}, got {getattr(self, name)}")
-        if self.scene_size is not None and not all(side >= 2 for side in self.scene_size):
-            raise InputError(f"scene_size must be at least [2, 2] (height, width), got {list(self.scene_size)}")
+        object.__setattr__(self, "scene_size", configured_scene_size(self.scene_size, self.rig))
         if self.solver not in SOLVERS:
             raise InputError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if self.loss not in LOSSES:

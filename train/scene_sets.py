@@ -1,9 +1,25 @@
 """Where commands get their scenes: files and folders given by the user, or the default synthetic set."""
 from __future__ import annotations
 
-from capture_sim.rig import Rig
+from capture_sim.errors import InputError, is_whole_number
+from capture_sim.rig import Rig, load_rig
 from capture_sim.scene import Scene, load_scene, scene_paths
-from capture_sim.synth import default_scene_set, default_scene_size
+from capture_sim.synth import default_scene_set, default_scene_size, scene_size
+
+
+def configured_scene_size(size, rig: str) -> tuple[int, int]:
+    """A config's ``scene_size``: two whole numbers of at least 2 (height, width), or None for the
+    default synthetic scenes' size on ``rig`` (``capture_sim.synth.default_scene_size``), resolved
+    here so that every record of a run names the size its scenes have.
+
+    Raises:
+        InputError: any other value, or a rig that cannot be loaded (when ``size`` is None).
+    """
+    if size is None:
+        return default_scene_size(load_rig(rig))
+    if not (len(size) == 2 and all(is_whole_number(side, 2) for side in size)):
+        raise InputError(f"scene_size must be two whole numbers of at least 2 (height, width), got {list(size)}")
+    return tuple(int(side) for side in size)
 
 
 _CACHE_SIZE = 4
@@ -17,8 +33,7 @@ def _rig_key(rig: Rig) -> tuple:
 
 
 def _default_set(rig: Rig, height: int, width: int, seed: int) -> dict:
-    if height is None and width is None:
-        height, width = default_scene_size(rig)
+    height, width = scene_size(rig, height, width)
     key = (_rig_key(rig), height, width, seed)
     if key not in _cache:
         if len(_cache) >= _CACHE_SIZE:

@@ -49,7 +49,7 @@ from train.capture import capture_scene
 from train.config_io import config_to_dict
 from train.learn import config_record_path, normal_loss, summary_writer
 from train.scene_pixels import ScenePixels, fixed_pixel_subsets, scene_pixels
-from train.scene_sets import resolve_scenes
+from train.scene_sets import configured_scene_size, resolve_scenes
 
 ALGORITHMS = ("LN_BOBYQA", "LN_COBYLA", "LN_SBPLX", "GN_CRS2_LM", "GN_ESCH", "GN_DIRECT_L", "LD_MMA", "LD_LBFGS")
 """NLopt algorithms `displex search` accepts: local derivative-free (LN), global (GN), gradient-based (LD)."""
@@ -103,8 +103,9 @@ class SearchConfig:
     rig: str = DEFAULT_RIG
     """Rig preset or TOML path."""
     scene_size: tuple[int, int] | None = None
-    """Image size (height, width) of the default synthetic scenes; None: a quarter of the rig
-    camera's resolution (``capture_sim.synth.default_scene_size``: 128 x 153 on the reference rig)."""
+    """Image size (height, width) of the default synthetic scenes; None (unset) is replaced on
+    construction by a quarter of the rig camera's resolution (``capture_sim.synth.default_scene_size``:
+    128 x 153 on the reference rig)."""
     scene_seed: int = 0
     """Seed of the default synthetic scenes."""
     sharpness: float = 4.0
@@ -116,6 +117,7 @@ class SearchConfig:
 
     def __post_init__(self):
         get_family(self.family)
+        object.__setattr__(self, "scene_size", configured_scene_size(self.scene_size, self.rig))
         if self.algorithm not in ALGORITHMS:
             raise InputError(f"unknown NLopt algorithm {self.algorithm!r}; algorithms: {', '.join(ALGORITHMS)}")
         if self.start not in PRESETS:
