@@ -72,10 +72,10 @@ def check_replaceable(path: str | Path) -> None:
     path = Path(path)
     if path.exists() and not path.is_file():
         raise InputError(f"cannot write {path}: it exists and is not a regular file")
-    _check_folder_place(path.parent, f"cannot write {path}")
+    check_folder_place(path.parent, f"cannot write {path}")
 
 
-def _check_folder_place(folder: Path, failure: str) -> None:
+def check_folder_place(folder: Path, failure: str) -> None:
     """Raise ``InputError`` (``failure``, then why) if ``folder``, or the nearest of its parents
     that exists, is not a folder: a file, or a broken symbolic link, where creating the missing
     folders would fail with a misleading 'File exists'."""
@@ -153,7 +153,7 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list 
     (e.g. to mark the folder as being replaced).
     """
     folder = Path(folder)
-    _check_folder_place(folder, f"cannot write into {folder}")
+    check_folder_place(folder, f"cannot write into {folder}")
     created = _missing_folders(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -256,6 +256,8 @@ def strict_json(obj, **options) -> str:
 
 
 def _finite_or_null(value):
+    if isinstance(value, np.generic):  # numpy numbers (np.float32, np.int64, np.bool_) as Python's
+        value = value.item()
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     if isinstance(value, dict):

@@ -99,6 +99,11 @@ def validate_scene(scene: Scene) -> None:
     name = f"scene {one_line(scene.meta.get('name', ''))}".strip()
     if "file" in scene.meta:  # the meta name may not say which file is broken
         name += f" ({one_line(scene.meta['file'])})"
+    for key in _ARRAY_KEYS:
+        value = getattr(scene, key)
+        if value is not None and not isinstance(value, np.ndarray):
+            raise InputError(f"{name}: {key} must be a numpy array (scenes hold arrays, not {type(value).__name__}; "
+                             "convert a tensor with .numpy())")
     check_array(f"{name}: olat", scene.olat, ("K", "H", "W", 3))
     num_lights, height, width, _ = scene.olat.shape
     _check_radiance(name, "olat", scene.olat)

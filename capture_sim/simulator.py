@@ -219,17 +219,20 @@ def sensor(
         signal: (...) exposed signal e * sum_k L O, full scale = 1.
         noise: Poisson-Gaussian model, or None for a noise-free sensor.
         bit_depth: quantisation bits, or None for none.
-        generator: torch random generator for the noise (seeded for reproducibility).
+        generator: torch random generator for the noise (seeded for reproducibility); None draws
+            from torch's global generator (``torch.manual_seed``).
 
     Returns:
         (...) captures in [0, 1], same shape as ``signal``, in its dtype or float32 if narrower.
 
     Raises:
-        InputError: a bit depth outside 1..24.
+        InputError: a bit depth outside 1..24, or a generator that is not a ``torch.Generator``.
         Values are not scanned (a hot path of learning; ``simulate`` checks its inputs).
     """
     if bit_depth is not None and not (isinstance(bit_depth, numbers.Integral) and not isinstance(bit_depth, bool) and 1 <= bit_depth <= 24):
         raise InputError(f"bit_depth must be None or a whole number in 1..24, got {bit_depth!r}")
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise InputError(f"generator must be a torch.Generator (e.g. torch.Generator().manual_seed(0)) or None, got {generator!r}")
     # At least float32: float16's smallest normal (6e-5) is a variance floor far above the read
     # noise's, and its spacing near 1 is coarser than 12-bit quantisation.
     signal = signal.to(torch.promote_types(signal.dtype, torch.float32))
@@ -276,9 +279,10 @@ def simulate(
         transport: light transport of the scene's pixels, K = R * C lights.
         rig: display model (backlight, gamma, scale) and sensor defaults.
         exposure: a number, "auto", or None for the rig's setting (a number or auto).
-        noise: a NoiseModel, None for noise-free, or "rig" for the rig's model.
+        noise: a NoiseModel, None for no noise (quantisation is ``bit_depth``'s: the command line's
+            ``--noise off`` passes None for both), or "rig" for the rig's model.
         bit_depth: bits, None for no quantisation, or "rig" for the rig's setting.
-        generator: random generator for the noise.
+        generator: torch random generator for the noise; None draws from torch's global one.
 
     Returns:
         Capture with (M, N, 3) captures, (M, K, 3) effective emission and the exposure used, in the

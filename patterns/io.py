@@ -99,5 +99,5 @@ def check_patterns_match_rig(patterns, rows: int, cols: int, rig_name: str | Non
     shape = tuple(np.shape(patterns))
     if len(shape) != 4 or shape[1:3] != (rows, cols):
         rig = "the rig" if rig_name is None else f"rig {rig_name}"
-        hint = "; patterns made for another rig need that rig (--rig)" if len(shape) == 4 else ""
+        hint = "; patterns made for another rig need that rig" if len(shape) == 4 else ""
         raise InputError(f"patterns have shape {shape} but {rig}'s display grid is {rows} x {cols} (expected (M, {rows}, {cols}, 3)){hint}")

@@ -139,8 +139,8 @@ class FitConfig:
             raise InputError("normal_search_at fractions must lie in [0, 1)")
         if not 0 < self.search_max_fraction <= 1:
             raise InputError(f"search_max_fraction must be in (0, 1], got {self.search_max_fraction}")
-        if self.search_candidates < 4 or self.search_residual_ratio <= 0 or not 0 < self.search_refine_deg < 90:
-            raise InputError("search_candidates >= 4, search_residual_ratio > 0 and 0 < search_refine_deg < 90 needed")
+        if self.search_candidates < 4 or not 0 < self.search_residual_ratio < math.inf or not 0 < self.search_refine_deg < 90:
+            raise InputError("search_candidates >= 4, a finite search_residual_ratio > 0 and 0 < search_refine_deg < 90 needed")
         if not 0 < self.initial_weight < 1:
             raise InputError(f"initial_weight must be in (0, 1), got {self.initial_weight}")
 
@@ -209,7 +209,8 @@ class InverseRenderResult:
     Attributes:
         normal: (N, 3) unit normals, camera frame.
         weights: (N, J) basis weights on the simplex.
-        diffuse: (J, 3) basis diffuse albedos rho_d (scene radiometric units).
+        diffuse: (J, 3) basis diffuse albedos rho_d (scene radiometric units; pi times the
+            photometric-stereo albedo ``PSResult.albedo``, which absorbs the Lambertian 1 / pi).
         specular: (J,) basis specular albedos rho_s (zeros for a Lambertian model).
         roughness: (J,) basis perceptual roughness.
         specular_enabled: False for a Lambertian model (no lobes are rendered).
@@ -335,8 +336,10 @@ def _check_fit_inputs(captures, emission, points, lights, pixel_index, height, w
         raise InputError("captures hold no pixels")
     if captures.shape[0] == 0 or not bool((torch.as_tensor(emission) > 0).any()):
         raise InputError("the inverse renderer needs at least one pattern with some emitted light")
-    if not (isinstance(captures, torch.Tensor) and captures.is_floating_point()):
-        raise InputError("captures must be a floating-point torch tensor")
+    if not all(isinstance(value, torch.Tensor) for value in (captures, emission, points, lights, pixel_index)):
+        raise InputError("captures, emission, points, lights and pixel_index must be torch tensors")
+    if not (captures.is_floating_point() and emission.is_floating_point()):
+        raise InputError("captures and emission must be floating-point torch tensors")
     index = torch.as_tensor(pixel_index)
     if index.is_floating_point() or index.dtype == torch.bool or index.unique().numel() != index.numel():
         raise InputError("pixel_index must hold distinct integer pixel indices")

@@ -30,7 +30,7 @@ from typing import Callable
 
 import torch
 
-from capture_sim.errors import InputError, check_array
+from capture_sim.errors import InputError, check_array, check_field_types
 from capture_sim.geometry import light_geometry
 from reconstruct.basis_render import render_under_patterns
 from reconstruct.fit_start import InitialEstimate
@@ -65,8 +65,9 @@ class SelectionConfig:
     def __post_init__(self):
         if self.max_basis < 1 or self.patience < 1 or self.iterations < 1 or self.batch_pixels < 1:
             raise InputError("SelectionConfig: max_basis, patience, iterations and batch_pixels must be >= 1")
-        if self.tolerance_db < 0 or self.min_improvement_db < 0 or self.far_field_tolerance < 0:
-            raise InputError("SelectionConfig: tolerances must be non-negative")
+        check_field_types(self)  # no NaN, which the comparisons here would let through
+        if not all(0 <= value < math.inf for value in (self.tolerance_db, self.min_improvement_db, self.far_field_tolerance)):
+            raise InputError("SelectionConfig: tolerances must be non-negative and finite")
 
     @property
     def max_candidates(self) -> int:

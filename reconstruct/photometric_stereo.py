@@ -152,7 +152,8 @@ class PSResult:
             (a = rho / pi); 0 where invalid.
         valid: (...) bool: not dark, not ill-conditioned, not back-facing, not bad geometry (and
             inside the mask for image solves). Saturated and not-converged pixels stay valid: their
-            flags say that the estimate is degraded, not meaningless.
+            flags say that the estimate is degraded, not meaningless (not-converged ones carry no
+            gradient, see ``solve_ps``).
         condition: (...) normal condition number (``pixel_solve.normal_condition``), in
             [1, CONDITION_CAP].
         residual: (...) RMS residual of the Lambertian fit relative to the RMS capture, in [0, 1],
@@ -414,7 +415,9 @@ def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSC
         chunk_size: pixels per block of (pixels x lights) work; bounds the temporaries (the
             unshadowed N x K weights are kept once). Results depend on it (and on the thread
             count) only through float rounding: in float32, up to a few hundredths of a degree on
-            well-conditioned pixels, more on ill-conditioned ones.
+            well-conditioned pixels; on ill-conditioned or ambiguous ones (several shadow masks
+            fit nearly as well) rounding can tip the search to another solution and change the
+            pixel's validity. float64 makes such pixels stable.
 
     Returns:
         PSResult with (N, 3) normals and albedo, (N,) valid, condition, residual and flags. Differentiable

@@ -130,8 +130,9 @@ def relighting_metrics(predicted: torch.Tensor, truth: torch.Tensor, pixel_index
         raise InputError(f"pixel_index must hold integer indices into the {height} x {width} image")
     if torch.unique(pixel_index).numel() != pixel_index.numel():
         raise InputError("pixel_index lists a pixel more than once")
-    predicted = predicted.detach().double().clamp(0.0, 1.0)
-    truth = truth.detach().double().clamp(0.0, 1.0)
+    # Tensors or arrays, as ``reconstruct.metrics`` takes them.
+    predicted = torch.as_tensor(predicted).detach().double().clamp(0.0, 1.0)
+    truth = torch.as_tensor(truth).detach().double().clamp(0.0, 1.0)
     count = predicted.shape[0]
 
     def to_images(values):

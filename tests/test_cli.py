@@ -466,7 +466,8 @@ def test_symbolic_link_loops_and_non_utf8_logdirs_give_one_line(tmp_path, scene_
     # An output under a broken link says so, not 'File exists' (a file, a folder, a lock).
     for args in (["patterns", "make", "--family", "olat", "--M", "2", "--out", str(tmp_path / "staged" / "sub" / "p.npz")],
                  ["scenes", "synth", "--size", "8x9", "--out", str(tmp_path / "staged" / "sub" / "deeper")],
-                 ["train", "--M", "2", "--steps", "1", "--out", str(tmp_path / "staged" / "sub" / "t.npz")]):
+                 ["train", "--M", "2", "--steps", "1", "--out", str(tmp_path / "staged" / "sub" / "t.npz")],
+                 ["train", "--M", "2", "--steps", "1", "--out", str(tmp_path / "t.npz"), "--logdir", str(tmp_path / "staged" / "sub" / "log")]):
         assert run(args) == 2
         err = capsys.readouterr().err.strip()
         assert err.endswith(f"{tmp_path / 'staged' / 'sub'} is a broken symbolic link (to {tmp_path / 'missing'})"), err
@@ -827,7 +828,7 @@ def test_inputs_made_for_another_rig_need_rig(tmp_path, scene_file, capsys):
     for args in refused:
         assert run(args) == 2, args
         err = capsys.readouterr().err.strip()
-        assert "was made for rig 'twin', but no --rig was given" in err and "\n" not in err, err
+        assert "was made for rig 'twin', but the command uses the default rig dir-odyssey-ark (" in err and "\n" not in err, err
     assert not (tmp_path / "frames").exists() and not (tmp_path / "t.npz").exists()
     assert run(["export", "--patterns", str(patterns), "--rig", str(other), "--out", str(tmp_path / "frames")]) == 0
     assert json.loads((tmp_path / "frames" / "manifest.json").read_text())["rig"] == "twin"

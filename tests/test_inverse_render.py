@@ -284,6 +284,9 @@ def test_olat_least_squares_handles_a_pure_red_object_and_bad_inputs_are_refused
     for bad_emission, bad_index in ((torch.zeros_like(emission), index), (emission, index.double()), (emission, torch.cat([index[:1], index[:-1]]))):
         with pytest.raises(InputError):
             fit_inverse_render(captures, bad_emission.float(), points.float(), scene.lights.float(), Falloff(), bad_index, 24, 30)
+    # Arrays where tensors go: one line, not an AttributeError from deep inside.
+    with pytest.raises(InputError, match="must be torch tensors"):
+        fit_inverse_render(captures, emission.float().numpy(), points.float(), scene.lights.float(), Falloff(), index, 24, 30)
     with pytest.raises(InputError, match=re.escape("falloff fitted (a=-5.458, b=14.7449) is not positive")):
         olat_least_squares(stack[lights] * exposure, EmissionPlan(emission), points, scene.lights, Falloff("fitted", a=-5.4580, b=14.7449))
 
@@ -381,9 +384,15 @@ def test_fit_config_rejects_bad_settings():
                 dict(initial_roughness=0.01), dict(normal_search_at=(1.5,)), dict(search_max_fraction=0.0),
                 # NaN passes every comparison: it turned the fit's output NaN or its regulariser off
                 dict(specular_floor=math.nan), dict(saturation_threshold=math.nan), dict(tv_weight=math.nan),
-                dict(specular_floor=-0.1), dict(saturation_threshold=0.0), dict(normal_lr=math.inf), dict(iterations=2.5)):
+                dict(specular_floor=-0.1), dict(saturation_threshold=0.0), dict(normal_lr=math.inf), dict(iterations=2.5),
+                dict(search_residual_ratio=math.inf)):
         with pytest.raises(InputError):
             FitConfig(**bad)
+    from reconstruct.model_selection import SelectionConfig
+
+    for bad in (dict(tolerance_db=math.nan), dict(far_field_tolerance=math.inf), dict(min_improvement_db=-1.0), dict(patience=1.5)):
+        with pytest.raises(InputError):
+            SelectionConfig(**bad)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -583,6 +592,7 @@ def test_relighting_ssim_of_identical_and_shuffled_images():
     pixel_index = torch.arange(20, 236)  # a dense mask: SSIM windows see image structure, not background
     images = torch.rand(2, pixel_index.numel(), 3, generator=torch.Generator().manual_seed(12), dtype=torch.float64)
     assert relighting_metrics(images, images, pixel_index, 16, 16)["ssim"] == pytest.approx(1.0, abs=1e-6)
+    assert relighting_metrics(images.numpy(), images.numpy(), pixel_index, 16, 16)["ssim"] == pytest.approx(1.0, abs=1e-6)  # arrays too
     assert relighting_metrics(images, 1.0 - images, pixel_index, 16, 16)["ssim"] < 0.0  # anti-correlated
 
 

@@ -196,6 +196,22 @@ def test_bad_inputs_raise():
         solve_ps(captures, emission, points, lights, Falloff("fitted", a=-5.458, b=14.7449))  # negative at 0.5 m
     with pytest.raises(InputError):
         solve_ps_image(captures[:, :, None], emission, points[:, None], torch.ones(6, 1), lights, falloff)  # float mask
+    # Raw 12-bit counts would all count as saturated; odd arguments failed deep inside with TypeErrors.
+    with pytest.raises(InputError, match=r"captures reach .* full-scale units .* raw counts"):
+        solve_ps(captures * 4095, emission * 4095, points, lights, falloff)
+    with pytest.raises(InputError, match="chunk_size must be a positive whole number"):
+        solve_ps(captures, emission, points, lights, falloff, chunk_size=1.5)
+    with pytest.raises(InputError, match="falloff must be a function of distance"):
+        solve_ps(captures, emission, points, lights, None)
+    from reconstruct.unrolled_ps import light_reach, solve_ps_unrolled
+    from reconstruct.woodham import solve_woodham
+
+    with pytest.raises(InputError, match="falloff must be a function of distance"):
+        solve_ps_unrolled(captures, emission, points, lights, None)
+    with pytest.raises(InputError, match="torch tensors"):
+        light_reach(points.numpy(), lights.numpy(), falloff)
+    with pytest.raises(InputError, match="raw counts"):
+        solve_woodham(captures * 255, emission * 255, points, lights, falloff)
 
 
 def _render_lambertian(points, normal, albedo, lights, emission):
@@ -276,6 +292,7 @@ def test_gradcheck_with_attached_shadows():
     assert _gradcheck_solver(captures, emission, points, lights)
 
 
+@pytest.mark.filterwarnings("ignore:32 x 40 scenes have another aspect ratio")  # the size that shows the case
 def test_pixels_that_did_not_converge_carry_no_gradient():
     """A not_converged pixel's value is no fixed point (its masks need not be its normal's): the
     Newton step's derivative there had the wrong sign against finite differences. Such pixels

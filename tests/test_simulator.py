@@ -82,6 +82,15 @@ def test_auto_exposure_puts_percentile_at_target():
     assert auto_exposure(torch.full((2, 10, 3), 1e-30)) == pytest.approx(0.9e30)  # tiny units are fine
 
 
+def test_generator_must_be_a_torch_generator():
+    from capture_sim.errors import InputError
+    from capture_sim.rig import NoiseModel
+    from capture_sim.simulator import sensor
+
+    with pytest.raises(InputError, match="generator must be a torch.Generator"):
+        sensor(torch.full((4,), 0.5), NoiseModel(1e-4, 1e-3), 12, generator=0)
+
+
 def test_noise_variance_matches_model():
     noise = NoiseModel(shot=1e-4, read_std=5e-4)
     generator = torch.Generator().manual_seed(0)

@@ -385,6 +385,11 @@ def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tm
 
     scene = synthesize_scene("sphere", "lambertian", load_rig(), height=16, width=20, seed=0)
     validate_scene(scene)
+    with pytest.raises(InputError, match=r"olat must be a numpy array .*convert a tensor with \.numpy\(\)"):
+        dataclasses.replace(scene, olat=torch.from_numpy(scene.olat))
+    # numpy numbers in the meta are written as JSON numbers
+    save_scene(dataclasses.replace(scene, meta={**scene.meta, "scale": np.float32(0.5), "count": np.int64(3)}), tmp_path / "numbers.npz")
+    assert json.loads(str(np.load(tmp_path / "numbers.npz")["meta"]))["scale"] == 0.5
     with pytest.raises(InputError, match="face away"):
         validate_scene(dataclasses.replace(scene, normal=-scene.normal))
     with pytest.raises(InputError, match="unit"):
@@ -506,3 +511,20 @@ def test_default_scene_size_follows_the_rig_camera_and_odd_aspects_are_warned(ri
         write_scene_set(tmp_path / "squashed", wide, height=12, width=24, progress=False)
     index = json.loads(write_scene_set(tmp_path / "set", wide, progress=False).read_text())
     assert (index["height"], index["width"]) == (12, 16)
+    for height, width in ((None, 14), (0, 14), (-4, 14), (12, 2.5)):  # checked before anything else (a zero divided)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(InputError, match="image size must be positive integers"):
+                default_scene_set(wide, height, width, progress=False)
+    # Settings resolve an unset size on construction: records name the size the scenes have.
+    from train.compare_config import compare_config_from_dict
+    from train.learn import TrainConfig
+    from train.search import SearchConfig
+
+    assert TrainConfig().scene_size == SearchConfig().scene_size == (128, 153)
+    for build in (lambda size: TrainConfig(scene_size=size), lambda size: SearchConfig(scene_size=size),
+                  lambda size: compare_config_from_dict({"scene_size": size, "learned_counts": []})):
+        assert build((24, 29)).scene_size == (24, 29)
+        for bad in ((0, 14), (1, 14), (12,), (12, 14, 3)):
+            with pytest.raises(InputError, match="scene_size must be (two whole numbers of at least 2|a list of 2 values)"):
+                build(bad)

@@ -113,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     scenes = commands.add_parser("scenes", help="synthetic scene sets").add_subparsers(dest="scenes_command", required=True, metavar="{synth}")
     synth = scenes.add_parser("synth", help="write the default synthetic scene set (train/ and test/ splits)")
     synth.add_argument("--out", type=_path, required=True, help="output folder")
-    synth.add_argument("--size", type=_size, default=None, help="image size HxW (default: a quarter of the rig camera's, 128x153 on the reference rig; full 512x612)")
+    synth.add_argument("--size", type=_size, default=None, help="image size HxW (default: a quarter of the rig camera's, 128x153 on the reference rig, whose full size is 512x612)")
     synth.add_argument("--seed", type=int, default=0, help="seed of the scene set (shapes, materials, textures)")
     synth.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
     synth.add_argument("--cast-shadows", action="store_true", help="trace cast shadows (slower)")
@@ -281,17 +281,18 @@ def _train(args) -> None:
     print(f"wrote learned patterns to {args.out}{last}")
 
 
-def rig_for_inputs(given: str | None, pattern_files=(), scenes=()) -> str:
+def rig_for_inputs(given: str | None, pattern_files=(), scenes=(), unchosen: str = "no --rig was given") -> str:
     """``train.rig_choice.rig_for_inputs``, imported when a command runs (it loads torch)."""
     from train.rig_choice import rig_for_inputs as choose
 
-    return choose(given, pattern_files, scenes)
+    return choose(given, pattern_files, scenes, unchosen)
 
 
 def _check_default_rig(rig: str, flag: str | None, pattern_files, scenes) -> None:
     """``rig_for_inputs`` for commands whose rig may also come from a config: a config that names
     a rig other than the default has chosen, as --rig does."""
-    rig_for_inputs(None if flag is None and rig == DEFAULT_RIG else rig, pattern_files, scenes)
+    rig_for_inputs(None if flag is None and rig == DEFAULT_RIG else rig, pattern_files, scenes,
+                   "neither --rig nor the config's `rig` named another")
 
 
 def _scene_files(*groups):

@@ -107,6 +107,8 @@ class InvRenderConfig:
         """Raise ``InputError`` with one line for a bad setting."""
         check_thread_count(self.threads)  # first: its message is the one `displex --threads` gives
         check_field_types(self)
+        if not isinstance(self.selection, SelectionConfig):
+            raise InputError(f"selection must be a SelectionConfig, got {type(self.selection).__name__}")
         self.num_basis()
         if self.iterations < 1:
             raise InputError(f"--iterations must be at least 1, got {self.iterations}")

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import atomic_path, exclusive_output, write_json
+from capture_sim.atomic import atomic_path, check_folder_place, exclusive_output, write_json
 from capture_sim.errors import InputError, check_seed, one_line
 from capture_sim.rig import DEFAULT_RIG, check_noise_scale, load_rig, rig_file, rig_source
 from capture_sim.scene import file_fingerprints, scene_paths
@@ -167,7 +167,7 @@ def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
     if not names_pattern_file(config.init):
         raise InputError(f"--init must be a family ({', '.join(FAMILIES)}) or a pattern file, got {config.init!r}")
     values, _ = load_patterns(path)
-    check_patterns_match_rig(values, rows, cols)
+    check_patterns_match_rig(values, rows, cols, config.rig)
     if values.shape[0] != config.num_patterns:
         raise InputError(f"{path} holds {values.shape[0]} patterns but M = {config.num_patterns} (learn M = {values.shape[0]} patterns to start from it)")
     return torch.as_tensor(values)
@@ -406,6 +406,7 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
 
 def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, checkpoint_mode: str) -> TrainResult:
     began = time.perf_counter()
+    check_logdir(logdir)  # before the scenes, which can take a while
     rig = load_rig(config.rig)
     train_scenes = training_samplers([scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed)], config)
     # Validating a user's training scenes against the synthetic defaults would report a number about
@@ -484,11 +485,23 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
 
 def summary_writer(logdir: Path | None):
     """A TensorBoard writer for the folder ``logdir`` (created if needed), or None without one."""
+    name = check_logdir(logdir)
+    if name is None:
+        return None
+    from torch.utils.tensorboard import SummaryWriter
+
+    return SummaryWriter(name)
+
+
+def check_logdir(logdir: Path | None) -> str | None:
+    """Create the TensorBoard folder ``logdir`` and check that it takes files, before any work
+    (``InputError`` otherwise); its name for the writer, or None without one."""
     if logdir is None:
         return None
     name = tensorboard_folder_name(logdir, "--logdir")
     if Path(logdir).exists() and not Path(logdir).is_dir():
         raise InputError(f"--logdir {logdir} is a file, not a folder")
+    check_folder_place(Path(logdir), f"--logdir {logdir} is not writable")  # a broken link on the way says so
     # The writer writes from a background thread, where a failure would print a thread traceback:
     # try the folder here first.
     try:
@@ -496,9 +509,7 @@ def summary_writer(logdir: Path | None):
         tempfile.TemporaryFile(dir=logdir).close()
     except OSError as err:
         raise InputError(f"--logdir {logdir} is not writable: {err.strerror or err}") from None
-    from torch.utils.tensorboard import SummaryWriter
-
-    return SummaryWriter(name)
+    return name
 
 
 def tensorboard_folder_name(folder: Path, what: str) -> str:

@@ -28,13 +28,14 @@ def recorded_rig(path: str | Path, what: str) -> str | None:
     return name if isinstance(name, str) else None
 
 
-def rig_for_inputs(given: str | None, pattern_files=(), scenes=()) -> str:
+def rig_for_inputs(given: str | None, pattern_files=(), scenes=(), unchosen: str = "no --rig was given") -> str:
     """The rig a command uses: ``given`` (its ``--rig``) when not None, else ``DEFAULT_RIG``.
 
     Args:
         given: the ``--rig`` value, None when the flag was left out.
         pattern_files: pattern file paths the command reads ('olat' and None are skipped).
         scenes: scene files or folders the command reads.
+        unchosen: why the default rig is used, for the message.
 
     Raises:
         InputError: no rig was given and an input records a rig other than the default.
@@ -46,6 +47,6 @@ def rig_for_inputs(given: str | None, pattern_files=(), scenes=()) -> str:
     for what, path in inputs:
         name = recorded_rig(path, what)
         if name not in (None, DEFAULT_RIG):
-            raise InputError(f"{what} {path} was made for rig {name!r}, but no --rig was given (the default is {DEFAULT_RIG}): "
-                             f"pass --rig with that rig's preset name or TOML file")
+            raise InputError(f"{what} {path} was made for rig {name!r}, but the command uses the default rig {DEFAULT_RIG} "
+                             f"({unchosen}): pass --rig with that rig's preset name or TOML file")
     return DEFAULT_RIG

@@ -47,7 +47,7 @@ from patterns.io import save_patterns
 from reconstruct.photometric_stereo import PSConfig, solve_ps
 from train.capture import capture_scene
 from train.config_io import config_to_dict
-from train.learn import config_record_path, normal_loss, summary_writer
+from train.learn import check_logdir, config_record_path, normal_loss, summary_writer
 from train.scene_pixels import ScenePixels, fixed_pixel_subsets, scene_pixels
 from train.scene_sets import configured_scene_size, resolve_scenes
 
@@ -566,6 +566,7 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
 def _search(config: SearchConfig, out: Path, logdir: Path | None, progress: bool) -> dict:
     from train.figures import save_figure
 
+    check_logdir(logdir)  # before the scenes, which can take a while
     rig = load_rig(config.rig)
     family = get_family(config.family)
     family.check(config.num_patterns, rig.rows, rig.cols)
