@@ -17,8 +17,8 @@ def configured_scene_size(size, rig: str) -> tuple[int, int]:
     """
     if size is None:
         return default_scene_size(load_rig(rig))
-    if not (len(size) == 2 and all(is_whole_number(side, 2) for side in size)):
-        raise InputError(f"scene_size must be two whole numbers of at least 2 (height, width), got {list(size)}")
+    if not (isinstance(size, (list, tuple)) and len(size) == 2 and all(is_whole_number(side, 2) for side in size)):
+        raise InputError(f"scene_size must be two whole numbers of at least 2 (height, width), got {size!r}")
     return tuple(int(side) for side in size)
 
 
