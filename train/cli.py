@@ -156,7 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.set_defaults(handler=_evaluate)
 
     train = commands.add_parser("train", help="learn patterns end to end through the photometric stereo")
-    train.add_argument("--config", type=_path, default=None, help="TOML in configs/train/ (flags override it)")
+    train.add_argument("--config", type=_path, default=None, help="settings file (TOML, e.g. configs/train/default.toml); flags override it")
     train.add_argument("--M", type=int, dest="num_patterns", default=None, help="number of patterns to learn (default: the config's, 4)")
     train.add_argument("--init", default=None, help="family name or pattern file to start from")
     train.add_argument("--scenes", type=_path, nargs="+", default=None, help="training scenes (default: synthetic train split)")
@@ -173,7 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.set_defaults(handler=_train, interrupted=_train_interrupted)
 
     search = commands.add_parser("search", help="NLopt search over a heuristic family's parameters")
-    search.add_argument("--config", type=_path, default=None, help="TOML in configs/search/ (flags override it)")
+    search.add_argument("--config", type=_path, default=None, help="settings file (TOML, e.g. configs/search/default.toml); flags override it")
     search.add_argument("--family", default=None, help="family name (see `displex patterns list`); default: the config's")
     search.add_argument("--M", type=int, dest="num_patterns", default=None, help="number of patterns; default: the config's")
     search.add_argument("--algorithm", default=None, help="LN_BOBYQA (default), LN_COBYLA, LN_SBPLX, GN_CRS2_LM, GN_ESCH, GN_DIRECT_L, LD_MMA, LD_LBFGS")
@@ -188,7 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     search.set_defaults(handler=_search, interrupted=_search_interrupted)
 
     compare = commands.add_parser("compare", help="compare learned, searched, heuristic and external patterns on held-out scenes")
-    compare.add_argument("--config", type=_path, required=True, help="TOML in configs/compare/ (or a preset name: default, demo)")
+    compare.add_argument("--config", type=_path, required=True, help="settings file (TOML, anywhere; e.g. configs/compare/demo.toml), or a preset name: default, demo")
     compare.add_argument("--out", type=_path, default=None, help="output folder (default: the config's `out`, relative to the folder holding the config's configs/)")
     compare.set_defaults(handler=_compare, interrupted=RERUN_REUSES_RUNS)
 

@@ -60,7 +60,8 @@ class ExternalPatterns:
     name: str
     """Label in tables and charts."""
     path: str
-    """Pattern file (.npz or .npy); relative paths are relative to the repository root."""
+    """Pattern file (.npz or .npy); a relative path is relative to the folder holding the config's
+    ``configs/`` folder (``train.config_io.repository_root``), like the config's other paths."""
 
 
 @dataclass(frozen=True)
@@ -130,8 +131,9 @@ class CompareConfig:
     eval_seed: int = 0
     """Noise seed of the evaluation (``EvalSettings.seed``): every method sees the same draws."""
     out: str = "runs/compare"
-    """Default output folder, relative to the repository root like the config's other paths (the
-    command's --out, relative to the working directory, replaces it)."""
+    """Default output folder, relative like the config's other paths (to the folder holding its
+    ``configs/`` folder, or its own folder outside one); the command's --out, relative to the
+    working directory, replaces it."""
 
     def __post_init__(self):
         object.__setattr__(self, "scene_size", configured_scene_size(self.scene_size, self.rig))
@@ -321,8 +323,8 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
 def load_compare_config(path: str | Path, overrides: dict | None = None) -> CompareConfig:
     """Load ``configs/compare/NAME.toml`` (or any TOML path); non-None ``overrides`` replace fields.
 
-    Relative paths inside the file are relative to the repository root that holds the file's
-    ``configs/`` folder.
+    Relative paths inside the file are relative to the folder that holds the file's ``configs/``
+    folder, or to the file's own folder when it is not inside one (``train.config_io.repository_root``).
     """
     path = Path(path)
     if path.suffix != ".toml" and not path.exists():
