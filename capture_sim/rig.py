@@ -10,13 +10,14 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from capture_sim.errors import InputError, check_array, is_whole_number, one_line
+from capture_sim.errors import DisplexWarning, InputError, check_array, is_whole_number, one_line
 from capture_sim.toml_io import load_toml
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -394,7 +395,7 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
         if "light_positions" in display:
             positions = _numbers("display light_positions", display["light_positions"])
         else:
-            positions = panel_positions(**display["panel"])
+            positions = panel_positions(**_panel_settings(display, default_name))
         exposure = config.get("exposure", "auto")
         bit_depth = config.get("bit_depth", 12)
         return Rig(
@@ -421,6 +422,26 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
         # Values of the wrong kind or size: a list where a number goes, inf where a whole number
         # goes, a zero aspect ratio, a one-element offset.
         raise InputError(f"rig {default_name}: {err or type(err).__name__}") from None
+
+
+def _panel_settings(display: dict, rig_name: str) -> dict:
+    """The ``[display.panel]`` table with its aspect ratio from ``panel_pixels`` (square display
+    pixels) when it gives none; a stated aspect that differs from the pixels' by over 1% is warned
+    (the superpixel positions follow the stated aspect, the exported frames the pixels)."""
+    panel = dict(display["panel"])
+    if display.get("panel_pixels") is None:
+        return panel
+    height, width = panel_size(display["panel_pixels"], "display panel_pixels")
+    if "aspect" not in panel:
+        panel["aspect"] = (float(width), float(height))
+        return panel
+    aspect = panel["aspect"]
+    if isinstance(aspect, (list, tuple)) and len(aspect) == 2 and all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in aspect):
+        if abs((aspect[0] / aspect[1]) / (width / height) - 1) > 0.01:
+            warnings.warn(f"rig {rig_name}: [display.panel] aspect {aspect[0]:g}:{aspect[1]:g} differs from panel_pixels "
+                          f"{width} x {height}; the superpixel positions follow the aspect, the exported frames the pixels",
+                          DisplexWarning, stacklevel=4)
+    return panel
 
 
 MAX_PANEL_SIDE = 65535

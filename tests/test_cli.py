@@ -836,6 +836,19 @@ def test_inputs_made_for_another_rig_need_rig(tmp_path, scene_file, capsys):
     config.write_text(f'rig = "{other}"\nval_every = 0\npixels_per_scene = 64\n')
     assert run(["train", "--config", str(config), "--M", "2", "--steps", "1", "--scenes", str(scene), "--out", str(tmp_path / "t.npz")]) == 0
     assert run(["train", "--rig", str(other), "--M", "2", "--steps", "1", "--scenes", str(scene), "--out", str(tmp_path / "t2.npz")]) == 0
+    # A chosen rig other than the inputs' is used, with one warning line per recorded rig.
+    capsys.readouterr()
+    assert run(["export", "--patterns", str(patterns), "--rig", "dir-odyssey-ark", "--out", str(tmp_path / "frames3")]) == 0
+    err = capsys.readouterr().err.strip()
+    assert err == "displex: warning: pattern file p.npz was made for rig 'twin'; used with rig 'dir-odyssey-ark' (its display, sensor and grid) as chosen", err
+    # compare: scenes made for another rig need the config's `rig`.
+    from train.compare import run_compare
+    from train.compare_config import compare_config_from_dict
+
+    config = compare_config_from_dict({"pattern_counts": [2], "noise_scales": [1.0], "heuristics": ["tri_complementary"], "learned_counts": [],
+                                       "include_olat_woodham": False, "train_scenes": [str(scene)], "test_scenes": [str(scene)]})
+    with pytest.raises(InputError, match=r"twin_scene.npz was made for rig 'twin', but the command uses the default rig .*set `rig` in the config"):
+        run_compare(config, tmp_path / "cmp", progress=False)
     # A grid mismatch names the rig and says what to do.
     assert run(["export", "--patterns", str(patterns), "--rig", "panel-32in-5x10", "--out", str(tmp_path / "frames2")]) == 2
     assert "rig panel-32in-5x10's display grid is 5 x 10" in capsys.readouterr().err

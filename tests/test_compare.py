@@ -354,6 +354,7 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     assert results["summary"]["learned_vs_heuristic"][0]["best_heuristic"] == "tri_complementary"
 
     report = (tmp_path / "report.md").read_text()
+    assert f"held-out test scenes of {SIZE[0]} x {SIZE[1]} pixels" in report  # the size the scenes have, not a setting
     assert results["summary"]["rerender"][0]["M"] == 2
     for text in ("method x M", "MAE against noise level", "How the advantage", "Capture time", "Compute time", "OLAT + Woodham", "normal + re-rendering",
                  "Heuristic families use preset default: off level 0, on level 1",
@@ -393,8 +394,11 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
         stat = changed.stat()
         os.utime(changed, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
         try:
-            with pytest.raises(InputError, match="made from input files .* that have changed since"):
+            # Every stale run in one message, naming the changed file (the rig's: all of them).
+            with pytest.raises(InputError, match=rf"made from input files .* that have changed since \({changed.name}\)") as refused:
                 run_compare(config, tmp_path, progress=False)
+            if changed.suffix == ".toml":
+                assert "earlier runs in" in str(refused.value) and str(refused.value).count(changed.name) >= 2, refused.value
         finally:
             os.utime(changed, ns=(stat.st_atime_ns, stat.st_mtime_ns))
     # A rerun refused for another config leaves the last finished run's files as they were,

@@ -37,7 +37,7 @@ from tqdm import tqdm
 from capture_sim.atomic import refuse_overwriting, staged_files, write_json
 from capture_sim.display import display_emission
 from capture_sim.errors import DisplexWarning, InputError
-from capture_sim.rig import CONFIG_DIR, load_rig
+from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, load_rig
 from capture_sim.scene import scene_paths
 from capture_sim.synth import GENERATOR
 from patterns.io import save_patterns
@@ -46,6 +46,7 @@ from train.compare_config import CompareConfig, compare_config_to_dict, load_com
 from train.compare_methods import Method, collect_methods
 from train.evaluate import EvalSettings, evaluate_scene
 from train.learn import tensorboard_folder_name
+from train.rig_choice import rig_for_inputs, warn_other_rigs
 from train.scene_pixels import ScenePixels, fixed_pixel_subsets, scene_pixels
 from train.scene_sets import resolve_scenes
 
@@ -356,7 +357,12 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
             raise InputError(f"[[external]] {item.name}: {item.path} lies in {pattern_dir}, whose files compare rewrites; "
                              "copy it elsewhere or choose another output folder")
     _check_scene_lists(config)
+    # Scenes made for another rig than the config's default need that rig; external pattern sets
+    # made for another may be compared on purpose (transfer), with a warning.
+    rig_for_inputs(None if config.rig == DEFAULT_RIG else config.rig, (), [*config.train_scenes, *config.test_scenes],
+                   "the config's `rig` names no other", "set `rig` in the config to that rig's preset name or TOML file")
     rig = load_rig(config.rig)
+    warn_other_rigs(rig.name, [("[[external]] pattern file", item.path) for item in config.external])
     exposure_ms, exposure_source = rig_exposure_ms(rig)
     resolved = compare_config_to_dict(config)
     test_raw = resolve_scenes(tuple(config.test_scenes), "test", rig, config.scene_size, config.scene_seed)
@@ -391,6 +397,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
         "pattern_counts": list(config.pattern_counts),
         "test_scenes": [pixels.name for pixels in test_scenes],
         "test_pixels": sum(pixels.num_pixels for pixels in test_scenes),
+        "test_image_sizes": sorted({f"{pixels.transport.height} x {pixels.transport.width}" for pixels in test_scenes}),
         "methods": [method_record(method, out_dir) for method in methods],
         "specular_free": specular_free,
         "skipped": skipped,

@@ -16,7 +16,7 @@ from patterns.families import get_family, make_patterns
 from patterns.io import load_patterns
 from train.compare_config import CompareConfig, SearchRun
 from train.config_io import config_to_dict
-from train.learn import TrainConfig, auto_init_family, input_fingerprints, train_patterns
+from train.learn import TrainConfig, auto_init_family, changed_files, input_fingerprints, train_patterns
 from train.search import run_search, trace_chart_path
 
 
@@ -60,16 +60,24 @@ def _reusable(path: Path, run_config, what: str) -> dict | None:
     changed since (``train.learn.input_fingerprints``: scene, init pattern and rig files), raise."""
     if not path.exists():
         return None
+    reason = _stale_reason(path, run_config)
+    if reason is not None:
+        raise InputError(f"{path} holds {what} {reason}; delete it or choose another output folder")
     patterns, meta = load_patterns(path)
+    return {"meta": meta, "patterns": patterns}
+
+
+def _stale_reason(path: Path, run_config) -> str | None:
+    """Why the existing output ``path`` cannot stand for a run of ``run_config``, or None."""
+    _, meta = load_patterns(path)
     if meta.get("config") != config_to_dict(run_config):
-        raise InputError(f"{path} holds {what} made with another config; delete it or choose another output folder")
-    record = _run_record(path)
+        return "made with another config"
     # Records of earlier versions held the scene files only: such a run cannot show it was made
     # from the current rig and init files, so it is not reused.
-    if record.get("input_files") != input_fingerprints(run_config):
-        raise InputError(f"{path} holds {what} made from input files (scenes, rig or init patterns) that have changed since, "
-                         "or not recorded; delete it or choose another output folder")
-    return {"meta": meta, "patterns": patterns}
+    recorded, current = _run_record(path).get("input_files"), input_fingerprints(run_config)
+    if recorded != current:
+        return f"made from input files (scenes, rig or init patterns) that have changed since{changed_files(recorded or [], current)}, or not recorded"
+    return None
 
 
 def _run_record(path: Path) -> dict:
@@ -95,12 +103,15 @@ def _learning_runs(config: CompareConfig):
 def _check_reusable_runs(config: CompareConfig, pattern_dir: Path) -> None:
     """Refuse (``_reusable``) before any learning starts: a folder whose learning or search outputs
     were made with another config would otherwise be refused only after minutes of the runs
-    before it."""
-    for count, seed, rerender in _learning_runs(config):
-        _, path, train_config = _learned_output(config, count, seed, rerender, pattern_dir)
-        _reusable(path, train_config, "learned patterns")
-    for run in config.search:
-        _reusable(pattern_dir / f"{run.name}.npz", config.search_config(run), "searched patterns")
+    before it. Every such output is named in one message (after a rig file changed, all are)."""
+    runs = [_learned_output(config, count, seed, rerender, pattern_dir)[1:] for count, seed, rerender in _learning_runs(config)]
+    runs += [(pattern_dir / f"{run.name}.npz", config.search_config(run)) for run in config.search]
+    stale = [(path, reason) for path, run_config in runs if path.exists() and (reason := _stale_reason(path, run_config)) is not None]
+    if len(stale) == 1:
+        raise InputError(f"{stale[0][0]} holds patterns {stale[0][1]}; delete it or choose another output folder")
+    if stale:
+        listed = "; ".join(f"{path.name}: {reason}" for path, reason in stale)
+        raise InputError(f"{len(stale)} earlier runs in {pattern_dir} cannot be reused ({listed}); delete them or choose another output folder")
 
 
 def learned_method(config: CompareConfig, num_patterns: int, seed: int, pattern_dir: Path, progress: bool,

@@ -365,16 +365,16 @@ def load_checkpoint(checkpoint: Path, resolved: dict) -> dict:
     if state["config"] != resolved:
         changed = sorted(key for key in resolved if state["config"].get(key) != resolved[key]) if isinstance(state["config"], dict) else []
         if changed == ["input_files"]:
-            files = _changed_files(state["config"]["input_files"], resolved["input_files"])
+            files = changed_files(state["config"]["input_files"], resolved["input_files"])
             raise InputError(f"checkpoint {checkpoint} was made from input files (scenes, start patterns, rig) that were rewritten or "
                              f"replaced since{files}; {_AFRESH}")
         raise InputError(f"checkpoint {checkpoint} was written with another config ({', '.join(changed) or 'other keys'} differ); {_AFRESH}")
     return state
 
 
-def _changed_files(recorded, current: list[list]) -> str:
-    """' (a, b)': the files whose ``file_fingerprints`` differ between a checkpoint's record and
-    now, or '' when the record cannot be read as fingerprints."""
+def changed_files(recorded, current: list[list]) -> str:
+    """' (a, b)': the names of the files whose ``file_fingerprints`` differ between a run's record
+    and now, or '' when the record cannot be read as fingerprints."""
     try:
         before = {entry[0]: list(entry) for entry in recorded}
     except (TypeError, IndexError, KeyError):

@@ -468,10 +468,16 @@ def _pixels_text(results: dict) -> str:
     return f"a fixed random subset of at most {count} masked pixels per scene (the same for every method)" if count else "every masked pixel"
 
 
+def _sizes_text(results: dict) -> str:
+    """' of 128 x 153 pixels' (the test images' sizes; absent from results of older versions)."""
+    sizes = results.get("test_image_sizes")
+    return f" of {' and '.join(sizes)} pixels" if sizes else ""
+
+
 def _measurement_caption(results: dict) -> str:
     default = results["default_noise"]
     return (
-        f"Measured on {len(results['test_scenes'])} held-out test scenes ({results['test_pixels']} masked pixels in all; "
+        f"Measured on {len(results['test_scenes'])} held-out test scenes{_sizes_text(results)} ({results['test_pixels']} masked pixels in all; "
         f"{', '.join(results['test_scenes'])}), rig {results['rig']} ({results['grid'][0]} x {results['grid'][1]} superpixels). "
         "Captures are simulated from the OLAT stacks (display gamma and backlight, Poisson-Gaussian noise at the given scale "
         "times the rig's noise variances, clipping, quantisation) with auto exposure per scene, then reconstructed with the "

@@ -1,17 +1,20 @@
-"""Which rig a command uses when no ``--rig`` is given.
+"""Which rig a command uses, against the rigs its input files were made for.
 
 Pattern and scene files record the rig they were made for (``meta["rig"]``). Without ``--rig`` a
 command uses the default rig, and where an input names another one that default would be silently
-wrong: frames exported at another display's resolution, captures simulated with another display's
-gamma and sensor. Such a command is refused with a line that says which rig the input needs.
+wrong (frames exported at another display's resolution, captures simulated with another display's
+gamma and sensor): such a command is refused with a line that says which rig the input needs. A
+rig that is chosen but differs from an input's is used as chosen, with a warning.
 """
 from __future__ import annotations
 
+import warnings
+from collections import defaultdict
 from pathlib import Path
 
 from capture_sim.array_files import read_arrays, read_meta
-from capture_sim.errors import InputError
-from capture_sim.rig import DEFAULT_RIG
+from capture_sim.errors import DisplexWarning, InputError
+from capture_sim.rig import DEFAULT_RIG, load_rig
 from capture_sim.scene import scene_paths
 
 
@@ -28,25 +31,47 @@ def recorded_rig(path: str | Path, what: str) -> str | None:
     return name if isinstance(name, str) else None
 
 
-def rig_for_inputs(given: str | None, pattern_files=(), scenes=(), unchosen: str = "no --rig was given") -> str:
-    """The rig a command uses: ``given`` (its ``--rig``) when not None, else ``DEFAULT_RIG``.
+def rig_for_inputs(given: str | None, pattern_files=(), scenes=(), unchosen: str = "no --rig was given",
+                   remedy: str = "pass --rig with that rig's preset name or TOML file") -> str:
+    """The rig a command uses: ``given`` when not None, else ``DEFAULT_RIG``.
 
     Args:
-        given: the ``--rig`` value, None when the flag was left out.
+        given: the rig the user chose (``--rig``, or a config's ``rig``), None when none was.
         pattern_files: pattern file paths the command reads ('olat' and None are skipped).
         scenes: scene files or folders the command reads.
-        unchosen: why the default rig is used, for the message.
+        unchosen: why the default rig is used, and ``remedy`` what to do, for the message.
 
     Raises:
-        InputError: no rig was given and an input records a rig other than the default.
+        InputError: no rig was chosen and an input records a rig other than the default.
+
+    Warns:
+        DisplexWarning: a chosen rig differs from the one an input records (one line per
+        recorded rig).
     """
-    if given is not None:
-        return given
     inputs = [("pattern file", path) for path in pattern_files if path not in (None, "olat")]
     inputs += [("scene", path) for path in scene_paths(scenes)]
+    if given is None:
+        for what, path in inputs:
+            name = recorded_rig(path, what)
+            if name not in (None, DEFAULT_RIG):
+                raise InputError(f"{what} {path} was made for rig {name!r}, but the command uses the default rig {DEFAULT_RIG} "
+                                 f"({unchosen}): {remedy}")
+        return DEFAULT_RIG
+    warn_other_rigs(load_rig(given).name, inputs)
+    return given
+
+
+def warn_other_rigs(rig_name: str, inputs) -> None:
+    """Warn once per recorded rig when (what, path) ``inputs`` were made for another rig than
+    ``rig_name``: they are used with this rig's display and sensor, which may not be meant."""
+    others: dict = defaultdict(list)
     for what, path in inputs:
         name = recorded_rig(path, what)
-        if name not in (None, DEFAULT_RIG):
-            raise InputError(f"{what} {path} was made for rig {name!r}, but the command uses the default rig {DEFAULT_RIG} "
-                             f"({unchosen}): pass --rig with that rig's preset name or TOML file")
-    return DEFAULT_RIG
+        if name is not None and name != rig_name:
+            others[name].append((what, Path(path).name))
+    for name, files in others.items():
+        listed = ", ".join(file for _, file in files[:3]) + (f" and {len(files) - 3} more" if len(files) > 3 else "")
+        kinds = {what for what, _ in files}
+        what = kinds.pop() + ("s" if len(files) > 1 else "") if len(kinds) == 1 else "inputs"
+        warnings.warn(f"{what} {listed} {'were' if len(files) > 1 else 'was'} made for rig {name!r}; used with rig {rig_name!r} "
+                      "(its display, sensor and grid) as chosen", DisplexWarning, stacklevel=3)
