@@ -258,6 +258,6 @@ def rig_for_scene(rig: Rig, scene: Scene) -> Rig:
         raise InputError(f"scene {scene.name}: its light positions are rig {rig.name}'s in millimetres; scene files use metres (divide by 1000)")
     if shift > LIGHT_MISMATCH_M:
         warnings.warn(f"scene {scene.name}: its light positions differ from rig {rig.name}'s by up to {shift:.3f} m; "
-                      "the scene's own calibration is used", DisplexWarning, stacklevel=2)
+                      "the scene's own light positions are used, with the rig's display and sensor", DisplexWarning, stacklevel=2)
     return rig.replace(light_positions=lights, camera=camera)
 
