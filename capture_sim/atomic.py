@@ -256,12 +256,12 @@ def strict_json(obj, **options) -> str:
 
 
 def _finite_or_null(value):
-    if isinstance(value, np.generic):  # numpy numbers (np.float32, np.int64, np.bool_) as Python's
-        value = value.item()
+    if isinstance(value, np.generic) or (isinstance(value, np.ndarray) and value.ndim == 0):
+        value = value.item()  # numpy numbers (np.float32, np.int64, np.bool_, 0-d arrays) as Python's
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     if isinstance(value, dict):
-        return {key: _finite_or_null(item) for key, item in value.items()}
+        return {key.item() if isinstance(key, np.generic) else key: _finite_or_null(item) for key, item in value.items()}
     if isinstance(value, (list, tuple)):
         return [_finite_or_null(item) for item in value]
     return value

@@ -171,13 +171,13 @@ def synthesize_scene(
     )
 
 
-def lambertian_sphere(rig: Rig, albedo=(0.6, 0.6, 0.6), height: int = 128, width: int = 153) -> Scene:
+def lambertian_sphere(rig: Rig, albedo=(0.6, 0.6, 0.6), height: int | None = None, width: int | None = None) -> Scene:
     """A uniform Lambertian sphere (radius 0.07 m on the optical axis at the working distance).
 
     Args:
         rig: the capture rig.
         albedo: (3,) or scalar diffuse albedo in [0, 1].
-        height, width: image size in pixels.
+        height, width: image size in pixels (None: ``default_scene_size``).
 
     Returns:
         The scene (see ``synthesize_scene``); a convex sphere has no cast shadows.

@@ -63,9 +63,9 @@ class SelectionConfig:
     by less than this relative RMS."""
 
     def __post_init__(self):
+        check_field_types(self)  # first: no NaN or text, which the comparisons below let through or fail on
         if self.max_basis < 1 or self.patience < 1 or self.iterations < 1 or self.batch_pixels < 1:
             raise InputError("SelectionConfig: max_basis, patience, iterations and batch_pixels must be >= 1")
-        check_field_types(self)  # no NaN, which the comparisons here would let through
         if not all(0 <= value < math.inf for value in (self.tolerance_db, self.min_improvement_db, self.far_field_tolerance)):
             raise InputError("SelectionConfig: tolerances must be non-negative and finite")
 

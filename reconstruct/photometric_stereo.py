@@ -29,8 +29,9 @@ searched value with that derivative, so values do not depend on gradient trackin
 alternation plus the per-pixel 3x3 Jacobian dPhi/da in closed form
 (``pixel_solve.alternation_jacobian``); the shadowed (pixels x lights) weights are re-formed
 block by block in the backward pass instead of being kept. Unrolling a few alternations from a
-detached start would be cheaper but biased. Pixels flagged not_converged get no gradient (zero): their value is no fixed point, and the
-step's derivative there can even have the wrong sign. The gradient is the same in every configuration;
+detached start would be cheaper but biased. A not-converged pixel whose value lies far from the fixed point of its masks (``NEAR_FIXED_POINT``)
+gets no gradient (zero): the step's derivative there can even have the wrong sign. The gradient is
+the same in every configuration;
 ``torch.autograd.gradcheck`` needs tight convergence (tolerance_deg=1e-10, max_alternations=1000,
 as in tests/test_photometric_stereo.py) because finite differences of the solver are otherwise
 limited by its stopping tolerance.
@@ -152,8 +153,8 @@ class PSResult:
             (a = rho / pi); 0 where invalid.
         valid: (...) bool: not dark, not ill-conditioned, not back-facing, not bad geometry (and
             inside the mask for image solves). Saturated and not-converged pixels stay valid: their
-            flags say that the estimate is degraded, not meaningless (not-converged ones carry no
-            gradient, see ``solve_ps``).
+            flags say that the estimate is degraded, not meaningless (not-converged ones far from
+            a fixed point carry no gradient, see ``solve_ps``).
         condition: (...) normal condition number (``pixel_solve.normal_condition``), in
             [1, CONDITION_CAP].
         residual: (...) RMS residual of the Lambertian fit relative to the RMS capture, in [0, 1],
@@ -268,6 +269,12 @@ class PatternEvaluator:
         return moments
 
 
+NEAR_FIXED_POINT = 0.05
+"""Relative size of the implicit Newton step below which a not-converged pixel's value counts as
+near the fixed point of its masks and keeps its gradient (measured: within about 10% of finite
+differences below 0.04; off by several times, even in sign, at 0.1 and beyond)."""
+
+
 def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, block_size: int) -> PSResult:
     """Solve N pixels: captures (M, N, 3), lighting matrix (K, 12 M), points (N, 3)."""
     track_gradient = torch.is_grad_enabled() and (captures.requires_grad or lighting.requires_grad)
@@ -290,12 +297,15 @@ def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, 
         graph_moments = normalised_moments(vectors, captures, equation_weight, capture_scale)
         graph_albedo, graph_normal = implicit_step(albedo, graph_moments, config.damping)
         # Values stay the searched ones (identical with and without gradient tracking); only the
-        # derivative comes from the Newton step, and only where the search converged: elsewhere
-        # the value is no fixed point (its masks need not be its normal's), so there is nothing
-        # to differentiate, and the Newton step's derivative can have the wrong sign.
-        converged = state.converged.to(albedo.dtype)
-        albedo = albedo + (graph_albedo - graph_albedo.detach()) * converged
-        normal = normal + (graph_normal - graph_normal.detach()) * converged
+        # derivative comes from the Newton step: the fixed point's where the value is one or lies
+        # near one. A not-converged value far from it (the step moves the albedo by more than
+        # NEAR_FIXED_POINT of its norm) gets none: there the step's derivative was off by
+        # several times, even in sign, against finite differences.
+        with torch.no_grad():
+            step = (graph_albedo - albedo).norm(dim=0) / albedo.norm(dim=0).clamp_min(torch.finfo(albedo.dtype).tiny)
+        differentiable = (state.converged | (step <= NEAR_FIXED_POINT)).to(albedo.dtype)
+        albedo = albedo + (graph_albedo - graph_albedo.detach()) * differentiable
+        normal = normal + (graph_normal - graph_normal.detach()) * differentiable
     albedo = albedo * (state.moments.capture_scale / state.moments.lighting_scale)
     flags = {"dark": dark, "saturated": saturated, "not_converged": ~state.converged}
     return finalise(normal.T, albedo.T, condition, relative_residual(state.normal, state.moments), flags, light_field, config)
@@ -422,7 +432,8 @@ def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSC
     Returns:
         PSResult with (N, 3) normals and albedo, (N,) valid, condition, residual and flags. Differentiable
         w.r.t. ``captures`` and ``emission`` (exact implicit gradients of the converged solution;
-        zero at pixels flagged not_converged, valid or not, which have none);
+        at pixels flagged not_converged, those of the nearby fixed point, or zero where the value
+        is far from one);
         no gradient flows to points or lights. The albedo is in the emission's units, so its
         gradient grows as 1 / (emission peak)^2: past float32's range for peaks below about 1e-19
         (the normal's stays finite; use float64, or emission in units near 1, to differentiate

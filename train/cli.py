@@ -398,10 +398,10 @@ def _invrender(args) -> None:
 
     if args.out is not None:
         check_output_folder(args.out, "invrender")
-    args.rig = rig_for_inputs(args.rig, [args.patterns], [args.scene])
     outputs = [("--json", separate_json(args.json, args.out, "result.json")), *((f"--out file {name}", None if args.out is None else args.out / name) for name in OUTPUT_FILES)]
     refuse_overwriting(outputs, [("--scene", args.scene), ("--patterns file", None if args.patterns == "olat" else args.patterns),
-                                 ("--rig file", rig_file(args.rig))])
+                                 ("--rig file", None if args.rig is None else rig_file(args.rig))])
+    args.rig = rig_for_inputs(args.rig, [args.patterns], [args.scene])
     changes = dict(scene=args.scene, patterns=args.patterns, basis=args.basis, noise=args.noise, seed=args.seed, rig=args.rig, json=args.json, out=args.out,
                    threads=args.torch_threads, exposure=args.exposure)  # already applied by _run; recorded in config.json
     if args.iterations is not None:

@@ -1,6 +1,8 @@
 """Where commands get their scenes: files and folders given by the user, or the default synthetic set."""
 from __future__ import annotations
 
+from pathlib import Path
+
 from capture_sim.errors import InputError, is_whole_number
 from capture_sim.rig import Rig, load_rig
 from capture_sim.scene import Scene, load_scene, scene_paths
@@ -16,6 +18,8 @@ def configured_scene_size(size, rig: str) -> tuple[int, int]:
         InputError: any other value, or a rig that cannot be loaded (when ``size`` is None).
     """
     if size is None:
+        if not isinstance(rig, (str, Path)):
+            raise InputError(f"rig must be a preset name or a TOML file path, got {rig!r}")
         return default_scene_size(load_rig(rig))
     if not (isinstance(size, (list, tuple)) and len(size) == 2 and all(is_whole_number(side, 2) for side in size)):
         raise InputError(f"scene_size must be two whole numbers of at least 2 (height, width), got {size!r}")
