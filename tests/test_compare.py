@@ -677,3 +677,27 @@ def test_cost_chart_crosses_out_all_invalid_methods_and_merges_coincident_labels
     # learned and the two searches and the dead method all sit at 0.1 s; the search twins coincide.
     assert sorted(annotations) == ["M=2", "M=2", "M=2"], annotations
     assert ALL_INVALID_LABEL in [text.get_text() for text in ax.get_legend().get_texts()]
+
+
+def test_summary_states_the_answer_first_against_plain_computation():
+    """Per M, the most accurate method and the learned / best-heuristic ratio with the test scenes
+    the learned patterns win (mean over seeds per scene); the evidence behind them."""
+    from train.report import summary_section
+
+    results = fake_results()
+    per_scene = {"a": (9.0, 11.0), "learned0": (8.0, 12.0), "learned1": (10.0, 8.0)}  # learned mean (9, 10) against a's (9, 11)
+    for method in results["methods"]:
+        for evaluation in method["evaluations"]:
+            maes = per_scene.get(method["id"], (evaluation["mae"], evaluation["mae"]))
+            evaluation["scenes"] = [{"name": f"scene{i}", "mae": mae} for i, mae in enumerate(maes)]
+    results["test_scenes"] = ["scene0", "scene1"]
+    summary = summary_tables(results)
+    text = "\n".join(summary_section(results, summary))
+    assert "- M = 2: most accurate: learned patterns, MAE 8.50 deg" in text  # (8 + 9) / 2 at noise 0.5 beats search 9.5 and a 10
+    assert "; best heuristic family a 10.00 deg; learned / heuristic 0.850, learned better on 1 of 2 test scenes" in text
+    assert "2 test scenes" in text and "from 2 learning seeds" in text and "placeholder normal" in text
+    comparisons = {c["noise_scale"]: c for c in summary["learned_vs_heuristic"]}
+    assert comparisons[0.5]["best_tuned"] == "s"
+    no_search = fake_results()
+    no_search["methods"] = [m for m in no_search["methods"] if m["kind"] != "search"]
+    assert all(c["best_tuned"] is None and c["ratio_tuned"] is None for c in summary_tables(no_search)["learned_vs_heuristic"])

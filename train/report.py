@@ -155,13 +155,18 @@ def learned_against_best(rows: list[dict], counts, noise: float) -> list[dict]:
     learned = learned_rows_per_m(rows)
     best = lowest_mae_per_m(rows, ("heuristic",))
     best_tuned = lowest_mae_per_m(rows, ("heuristic", "search"))
+    searched = {row["M"] for row in rows if row["kind"] == "search"}
+
+    def tuned(count, key):  # None where no search ran at that M: the tuned columns would copy the others
+        return best_tuned[count][key] if count in searched else None
+
     return [
         {
             "M": count, "noise_scale": noise, "learned_mae": learned[count]["mae"],
             "best_heuristic": best[count]["series"], "best_heuristic_mae": best[count]["mae"],
             "ratio": learned[count]["mae"] / max(best[count]["mae"], 1e-12),
-            "best_tuned": best_tuned[count]["label"], "best_tuned_mae": best_tuned[count]["mae"],
-            "ratio_tuned": learned[count]["mae"] / max(best_tuned[count]["mae"], 1e-12),
+            "best_tuned": tuned(count, "label"), "best_tuned_mae": tuned(count, "mae"),
+            "ratio_tuned": None if count not in searched else learned[count]["mae"] / max(best_tuned[count]["mae"], 1e-12),
         }
         for count in counts if count in learned and count in best
     ]
@@ -562,7 +567,8 @@ def specular_free_section(results: dict, summary: dict, rows: list[dict]) -> lis
         head += f"{full['ratio']:.3f} on the scenes ({full['best_heuristic']}), " if full else ""
         line = head + f"{c['ratio']:.3f} without specular reflection ({c['best_heuristic']}, {c['best_heuristic_mae']:.2f} deg)"
         if full and full["ratio"] < 1 <= c["ratio"]:
-            line += "; the learned advantage is on the glossy pixels (the patterns were learned on glossy scenes)"
+            line += ("; the learned advantage is on the glossy pixels: on matte surfaces the best heuristic is the better "
+                     "choice (the training scenes are mostly glossy)")
         lines.append(line + ".")
     return lines + [""]
 
@@ -598,7 +604,9 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict, into: Path) -
     summary = results.get("summary") or summary_tables(results)
     rows = summary["rows"]
     written = _write_charts(results, summary, pattern_sets, into)
-    lines = ["# Pattern comparison", "", _measurement_caption(results), ""]
+    lines = ["# Pattern comparison", ""]
+    lines += summary_section(results, summary)
+    lines += ["## How it was measured", "", _measurement_caption(results), ""]
     lines += _accuracy_section(results, rows)
     lines += _noise_section(results, rows)
     lines += _advantage_section(summary, results["pattern_counts"])
@@ -629,11 +637,13 @@ def _write_charts(results: dict, summary: dict, pattern_sets: dict, into: Path) 
     """Write the report's charts into ``into``; returns the ``CHARTS`` keys written."""
     rows = summary["rows"]
     short = f"{len(results['test_scenes'])} test scenes, noise scale {results['default_noise']:g}, analytic PS (OLAT: Woodham); MAE averaged over scenes."
-    save_figure(chart_mae_vs_patterns(rows, f"{short} Learned: mean over seeds, bars = std."), into / CHARTS["mae_vs_M"])
+    several_seeds = any(row["seeds"] > 1 for row in rows if row["kind"] == "learned")
+    seeds_note = " Learned: mean over seeds, bars = std." if several_seeds else " Learned: one seed."
+    save_figure(chart_mae_vs_patterns(rows, short + seeds_note), into / CHARTS["mae_vs_M"])
     save_figure(chart_mae_vs_cost(rows, "capture_seconds", f"capture time (s) = M x {results['exposure_ms']:g} ms x e / e_white", "Accuracy against capture time",
                                   short), into / CHARTS["mae_vs_capture_time"])
     save_figure(chart_mae_vs_cost(rows, "compute_seconds", "compute time per scene (s): simulation + reconstruction, CPU",
-                                  "Speed-accuracy: normal error against reconstruction time", short), into / CHARTS["mae_vs_compute_time"])
+                                  "Speed-accuracy: normal error against compute time", short), into / CHARTS["mae_vs_compute_time"])
     save_figure(chart_mae_vs_noise(results, f"{len(results['test_scenes'])} test scenes; analytic PS (OLAT: Woodham); noise scale multiplies the rig's noise variances."),
                 into / CHARTS["mae_vs_noise"])
     written = {"mae_vs_M", "mae_vs_capture_time", "mae_vs_compute_time", "mae_vs_noise"}
@@ -698,6 +708,52 @@ def _noise_section(results: dict, rows: list[dict]) -> list[str]:
     return lines + [_table(["method", "M"] + [f"noise {n:g}" for n in noises], body), ""]
 
 
+def summary_section(results: dict, summary: dict) -> list[str]:
+    """The answer first: per M at the default noise, the most accurate method and its capture time,
+    the learned patterns against the best heuristic family with the test scenes each wins, and how
+    much of the evidence there is (scenes, learning seeds, noise draws)."""
+    rows, default = summary["rows"], results["default_noise"]
+    best = lowest_mae_per_m(rows, ("learned", "rerender", "heuristic", "search", "external"))
+    comparisons = {c["M"]: c for c in summary["learned_vs_heuristic"] if math.isclose(c["noise_scale"], default)}
+    lines = ["## Summary", "", f"At noise scale {default:g} (lower MAE is better):", ""]
+    for count in results["pattern_counts"]:
+        if count not in best:
+            continue
+        winner = best[count]
+        name = "learned patterns" if winner["kind"] == "learned" else winner["label"]
+        text = f"- M = {count}: most accurate: {name}, MAE {winner['mae']:.2f} deg (capture {winner['capture_seconds']:.2f} s)"
+        if count in comparisons:
+            c = comparisons[count]
+            wins, scenes = _scene_wins(results, count, c["best_heuristic"], default)
+            learned = "" if winner["kind"] == "learned" else f"; learned {c['learned_mae']:.2f} deg"
+            text += (f"{learned}; best heuristic family {c['best_heuristic']} {c['best_heuristic_mae']:.2f} deg; learned / heuristic "
+                     f"{c['ratio']:.3f}" + (f", learned better on {wins} of {scenes} test scenes" if scenes else ""))
+        lines.append(text + ".")
+    seeds = sorted({m["seed"] for m in results["methods"] if m["kind"] == "learned"})
+    lines += ["", f"Evidence: {len(results['test_scenes'])} test scenes, one noise draw per scene and method (the same draws for "
+              f"every method), learned patterns from {len(seeds) or 'no'} learning seed{'s' if len(seeds) != 1 else ''}"
+              + ("" if len(seeds) > 1 else " (no seed spread measured)") + ". A pixel the solver flags invalid counts in the MAE with "
+              "the placeholder normal (0, 0, -1), facing the camera; the invalid share is in the tables below.", ""]
+    return lines
+
+
+def _scene_wins(results: dict, count: int, heuristic: str, noise: float) -> tuple[int, int]:
+    """(test scenes where the learned patterns' mean MAE over seeds beats ``heuristic``'s, scenes
+    compared) at M = ``count`` and ``noise``."""
+    def per_scene(kind, series=None):
+        values: dict = defaultdict(list)
+        for method in results["methods"]:
+            if method["kind"] == kind and method["M"] == count and (series is None or method["series"] == series):
+                evaluation = _evaluation(method, noise)
+                for scene in (evaluation or {}).get("scenes", []):
+                    values[scene["name"]].append(scene["mae"])
+        return {name: float(np.mean(maes)) for name, maes in values.items()}
+
+    learned, other = per_scene("learned"), per_scene("heuristic", heuristic)
+    shared = [name for name in learned if name in other]
+    return sum(learned[name] < other[name] for name in shared), len(shared)
+
+
 def _advantage_section(summary: dict, counts: list[int]) -> list[str]:
     """Learned MAE over the best heuristic's at every M and noise, and its trend with noise."""
     comparisons = summary["learned_vs_heuristic"]
@@ -705,9 +761,10 @@ def _advantage_section(summary: dict, counts: list[int]) -> list[str]:
         return []
     lines = ["## How the advantage of learned patterns changes with noise", "",
              "Ratio = learned MAE / best heuristic MAE (< 1: learned is better). Best heuristic: the family with the lowest MAE at "
-             "its default parameters at that M and noise; 'tuned' also counts the NLopt-searched families.", ""]
+             "its default parameters at that M and noise; 'tuned' also counts the NLopt-searched families ('-' where no search ran at that M).", ""]
     body = [[str(c["M"]), f"{c['noise_scale']:g}", _fmt(c["learned_mae"]), f"{c['best_heuristic']} ({_fmt(c['best_heuristic_mae'])})",
-             _fmt(c["ratio"], 3), f"{c['best_tuned']} ({_fmt(c['best_tuned_mae'])})", _fmt(c["ratio_tuned"], 3)] for c in comparisons]
+             _fmt(c["ratio"], 3), "-" if c["best_tuned"] is None else f"{c['best_tuned']} ({_fmt(c['best_tuned_mae'])})",
+             _fmt(c["ratio_tuned"], 3)] for c in comparisons]
     lines += [_table(["M", "noise", "learned MAE", "best heuristic (MAE)", "ratio", "best tuned (MAE)", "ratio (tuned)"], body), ""]
     for count in counts:
         at_m = sorted((c for c in comparisons if c["M"] == count), key=lambda c: c["noise_scale"])

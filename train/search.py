@@ -493,6 +493,7 @@ def trace_figure(history: list, title: str, caption: str):
     ax.plot(np.arange(values.size), values, "o", markersize=3, alpha=0.6, label="evaluation")
     ax.plot(np.arange(values.size), np.minimum.accumulate(values), "-", linewidth=2, label="best so far")
     ax.set_xlabel("evaluation index")
+    ax.xaxis.get_major_locator().set_params(integer=True)  # evaluations are counted, not measured
     ax.set_ylabel("mean angular error (deg)")
     ax.set_title(title)
     ax.grid(alpha=0.3)
