@@ -567,8 +567,7 @@ def specular_free_section(results: dict, summary: dict, rows: list[dict]) -> lis
         head += f"{full['ratio']:.3f} on the scenes ({full['best_heuristic']}), " if full else ""
         line = head + f"{c['ratio']:.3f} without specular reflection ({c['best_heuristic']}, {c['best_heuristic_mae']:.2f} deg)"
         if full and full["ratio"] < 1 <= c["ratio"]:
-            line += ("; the learned advantage is on the glossy pixels: on matte surfaces the best heuristic is the better "
-                     "choice (the training scenes are mostly glossy)")
+            line += "; the learned advantage is on the glossy pixels: on matte surfaces the best heuristic is the better choice"
         lines.append(line + ".")
     return lines + [""]
 
