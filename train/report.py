@@ -266,7 +266,9 @@ def chart_mae_vs_patterns(rows: list[dict], caption: str):
             ax.axhline(values[0]["mae"], color="black", linestyle="--", linewidth=1, label=f"{values[0]['label']}")
             continue
         counts = [row["M"] for row in values]
-        maes = [row["mae"] for row in values]
+        # An all-invalid point measures the placeholder normal: crossed out below, and the line
+        # breaks there instead of joining it to real reconstructions.
+        maes = [math.nan if all_invalid(row) else row["mae"] for row in values]
         errors = [row["mae_std"] for row in values]
         ax.errorbar(counts, maes, yerr=errors if kind == "learned" else None, label=label, capsize=3, **_style(kind, series))
     _cross_out(ax, [(row["M"], row["mae"]) for row in rows if row["kind"] != "reference" and all_invalid(row)])
