@@ -436,11 +436,12 @@ def _panel_settings(display: dict, rig_name: str) -> dict:
         panel["aspect"] = (float(width), float(height))
         return panel
     aspect = panel["aspect"]
-    if isinstance(aspect, (list, tuple)) and len(aspect) == 2 and all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in aspect):
-        if abs((aspect[0] / aspect[1]) / (width / height) - 1) > 0.01:
-            warnings.warn(f"rig {rig_name}: [display.panel] aspect {aspect[0]:g}:{aspect[1]:g} differs from panel_pixels "
-                          f"{width} x {height}; the superpixel positions follow the aspect, the exported frames the pixels",
-                          DisplexWarning, stacklevel=4)
+    usable = all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < math.inf for v in aspect) if isinstance(aspect, (list, tuple)) else False
+    if usable and len(aspect) == 2 and abs((aspect[0] / aspect[1]) / (width / height) - 1) > 0.01:
+        # Here, not at the caller: every load of the rig would otherwise print it again.
+        warnings.warn(f"rig {rig_name}: [display.panel] aspect {aspect[0]:g}:{aspect[1]:g} differs from panel_pixels "
+                      f"{width} x {height}; the superpixel positions follow the aspect, the exported frames the pixels",
+                      DisplexWarning, stacklevel=1)
     return panel
 
 

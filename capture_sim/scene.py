@@ -256,7 +256,12 @@ def rig_for_scene(rig: Rig, scene: Scene) -> Rig:
     millimetre_shift = float(np.linalg.norm(lights / 1000.0 - rig.light_positions, axis=-1).max())
     if millimetre_shift <= MILLIMETRE_MATCH_M and millimetre_shift < shift:
         raise InputError(f"scene {scene.name}: its light positions are rig {rig.name}'s in millimetres; scene files use metres (divide by 1000)")
-    if shift > LIGHT_MISMATCH_M:
+    recorded = scene.meta.get("rig")
+    if isinstance(recorded, str) and recorded != rig.name:
+        # One line for all the scenes of that rig (a constant message at a constant place).
+        warnings.warn(f"scenes made for rig {recorded!r} are used with rig {rig.name!r}: their own light positions and "
+                      "intrinsics, its display and sensor", DisplexWarning, stacklevel=1)
+    elif shift > LIGHT_MISMATCH_M:
         warnings.warn(f"scene {scene.name}: its light positions differ from rig {rig.name}'s by up to {shift:.3f} m; "
                       "the scene's own light positions are used, with the rig's display and sensor", DisplexWarning, stacklevel=2)
     return rig.replace(light_positions=lights, camera=camera)

@@ -11,7 +11,7 @@ import pytest
 
 from capture_sim.errors import MAX_THREADS, InputError
 from capture_sim.rig import load_rig
-from capture_sim.scene import save_scene
+from capture_sim.scene import load_scene, save_scene
 from capture_sim.synth import synthesize_scene
 from patterns.io import save_patterns
 from train.cli import run
@@ -155,13 +155,25 @@ def test_scene_black_inside_its_mask_is_reported(tmp_path, scene_file, capsys):
 
 
 def test_scene_lights_far_from_the_rig_are_reported(tmp_path, scene_file, capsys):
+    """A scene made for another rig is reported once for all the scenes of that rig; one that
+    records no rig (or the same) is reported per scene when its lights are far from the rig's."""
+    import dataclasses
+
     text = (load_rig.__globals__["RIG_DIR"] / "panel-32in-5x10.toml").read_text()
     (tmp_path / "flat.toml").write_text(text.replace("rows = 5", "rows = 9").replace("cols = 10", "cols = 16"))
-    for rig, warned in ((str(tmp_path / "flat.toml"), True), ("dir-odyssey-ark", False)):
+    scene = load_scene(scene_file)
+    unnamed = tmp_path / "unnamed"
+    unnamed.mkdir()
+    for index in range(3):
+        meta = {key: value for key, value in scene.meta.items() if key not in ("rig", "file")}
+        save_scene(dataclasses.replace(scene, meta={**meta, "name": f"copy{index}"}), unnamed / f"copy{index}.npz")
+    recorded = "displex: warning: scenes made for rig 'dir-odyssey-ark' are used with rig 'panel-32in-5x10': their own light positions"
+    for rig, scenes, warning, count in ((str(tmp_path / "flat.toml"), scene_file, recorded, 1), ("dir-odyssey-ark", scene_file, recorded, 0),
+                                        (str(tmp_path / "flat.toml"), unnamed, "its light positions differ from rig panel-32in-5x10's", 3)):
         capsys.readouterr()
-        assert run(["evaluate", "--patterns", "olat", "--scenes", str(scene_file), "--rig", rig]) == 0
+        assert run(["evaluate", "--patterns", "olat", "--scenes", str(scenes), "--rig", rig]) == 0
         err = capsys.readouterr().err
-        assert ("displex: warning: scene blob-svbrdf-s3: its light positions differ from rig panel-32in-5x10's" in err) == warned, err
+        assert err.count(warning) == count, err
 
 
 def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
@@ -840,7 +852,10 @@ def test_inputs_made_for_another_rig_need_rig(tmp_path, scene_file, capsys):
     capsys.readouterr()
     assert run(["export", "--patterns", str(patterns), "--rig", "dir-odyssey-ark", "--out", str(tmp_path / "frames3")]) == 0
     err = capsys.readouterr().err.strip()
-    assert err == "displex: warning: pattern file p.npz was made for rig 'twin'; used with rig 'dir-odyssey-ark' (its display, sensor and grid) as chosen", err
+    assert err == "displex: warning: pattern file p.npz was made for rig 'twin'; shown on the display of rig 'dir-odyssey-ark', as chosen", err
+    # ... and none for a file on another grid, which the command refuses.
+    assert run(["export", "--patterns", str(patterns), "--rig", "panel-32in-5x10", "--out", str(tmp_path / "frames4")]) == 2
+    assert "warning" not in capsys.readouterr().err
     # compare: scenes made for another rig need the config's `rig`.
     from train.compare import run_compare
     from train.compare_config import compare_config_from_dict

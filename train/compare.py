@@ -360,9 +360,9 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     # Scenes made for another rig than the config's default need that rig; external pattern sets
     # made for another may be compared on purpose (transfer), with a warning.
     rig_for_inputs(None if config.rig == DEFAULT_RIG else config.rig, (), [*config.train_scenes, *config.test_scenes],
-                   "the config's `rig` names no other", "set `rig` in the config to that rig's preset name or TOML file")
+                   "the config's `rig` is the default", "set `rig` in the config to that rig's preset name or TOML file")
     rig = load_rig(config.rig)
-    warn_other_rigs(rig.name, [("[[external]] pattern file", item.path) for item in config.external])
+    warn_other_rigs(rig, [item.path for item in config.external], "[[external]] pattern file")
     exposure_ms, exposure_source = rig_exposure_ms(rig)
     resolved = compare_config_to_dict(config)
     test_raw = resolve_scenes(tuple(config.test_scenes), "test", rig, config.scene_size, config.scene_seed)

@@ -45,33 +45,43 @@ def rig_for_inputs(given: str | None, pattern_files=(), scenes=(), unchosen: str
         InputError: no rig was chosen and an input records a rig other than the default.
 
     Warns:
-        DisplexWarning: a chosen rig differs from the one an input records (one line per
-        recorded rig).
+        DisplexWarning: a chosen rig differs from the one a pattern file on its grid records (one
+        line per recorded rig; scenes warn when they are prepared, ``rig_for_scene``).
     """
-    inputs = [("pattern file", path) for path in pattern_files if path not in (None, "olat")]
-    inputs += [("scene", path) for path in scene_paths(scenes)]
+    patterns = [path for path in pattern_files if path not in (None, "olat")]
     if given is None:
-        for what, path in inputs:
+        for what, path in [("pattern file", path) for path in patterns] + [("scene", path) for path in scene_paths(scenes)]:
             name = recorded_rig(path, what)
             if name not in (None, DEFAULT_RIG):
                 raise InputError(f"{what} {path} was made for rig {name!r}, but the command uses the default rig {DEFAULT_RIG} "
                                  f"({unchosen}): {remedy}")
         return DEFAULT_RIG
-    warn_other_rigs(load_rig(given).name, inputs)
+    warn_other_rigs(load_rig(given), patterns)
     return given
 
 
-def warn_other_rigs(rig_name: str, inputs) -> None:
-    """Warn once per recorded rig when (what, path) ``inputs`` were made for another rig than
-    ``rig_name``: they are used with this rig's display and sensor, which may not be meant."""
+def warn_other_rigs(rig, pattern_files, what: str = "pattern file") -> None:
+    """Warn once per recorded rig when pattern files on ``rig``'s grid were made for another rig:
+    they are shown on this rig's display, which may not be meant. Files on another grid are left
+    to the command, which refuses or skips them."""
     others: dict = defaultdict(list)
-    for what, path in inputs:
+    for path in pattern_files:
         name = recorded_rig(path, what)
-        if name is not None and name != rig_name:
-            others[name].append((what, Path(path).name))
+        if name is not None and name != rig.name and _grid(path) == (rig.rows, rig.cols):
+            others[name].append(Path(path).name)
     for name, files in others.items():
-        listed = ", ".join(file for _, file in files[:3]) + (f" and {len(files) - 3} more" if len(files) > 3 else "")
-        kinds = {what for what, _ in files}
-        what = kinds.pop() + ("s" if len(files) > 1 else "") if len(kinds) == 1 else "inputs"
-        warnings.warn(f"{what} {listed} {'were' if len(files) > 1 else 'was'} made for rig {name!r}; used with rig {rig_name!r} "
-                      "(its display, sensor and grid) as chosen", DisplexWarning, stacklevel=3)
+        listed = ", ".join(files[:3]) + (f" and {len(files) - 3} more" if len(files) > 3 else "")
+        plural = len(files) > 1
+        warnings.warn(f"{what}{'s' if plural else ''} {listed} {'were' if plural else 'was'} made for rig {name!r}; shown on the "
+                      f"display of rig {rig.name!r}, as chosen", DisplexWarning, stacklevel=3)
+
+
+def _grid(path) -> tuple[int, int] | None:
+    """(R, C) of a readable pattern file, else None."""
+    try:
+        contents = read_arrays(path, "pattern", keys=("patterns",))
+    except InputError:
+        return None
+    values = contents.get("patterns") if isinstance(contents, dict) else contents
+    shape = getattr(values, "shape", ())
+    return tuple(shape[1:3]) if len(shape) == 4 else None
