@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from pathlib import Path
 from typing import Sequence
 
@@ -21,6 +22,24 @@ class InputError(ValueError):
 class DisplexWarning(UserWarning):
     """Input that is usable but probably not what the user meant; the command line prints it as
     one ``displex: warning:`` line."""
+
+
+_WARNED: set = set()
+
+
+def warn_once(message: str) -> None:
+    """Issue ``message`` as a ``DisplexWarning`` unless it was issued already since the last
+    ``forget_warnings`` (each command starts afresh): one cause met again (a rig loaded twice,
+    every scene of one set) says so once. Python's own once-per-place registry is not enough: any
+    change of the warning filters, as importing scipy or matplotlib makes, clears it."""
+    if message not in _WARNED:
+        _WARNED.add(message)
+        warnings.warn(message, DisplexWarning, stacklevel=3)
+
+
+def forget_warnings() -> None:
+    """Let ``warn_once`` issue every message again (at the start of a command)."""
+    _WARNED.clear()
 
 
 def one_line(text) -> str:

@@ -10,14 +10,13 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from capture_sim.errors import DisplexWarning, InputError, check_array, is_whole_number, one_line
+from capture_sim.errors import InputError, check_array, is_whole_number, one_line, warn_once
 from capture_sim.toml_io import load_toml
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -438,10 +437,8 @@ def _panel_settings(display: dict, rig_name: str) -> dict:
     aspect = panel["aspect"]
     usable = all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < math.inf for v in aspect) if isinstance(aspect, (list, tuple)) else False
     if usable and len(aspect) == 2 and abs((aspect[0] / aspect[1]) / (width / height) - 1) > 0.01:
-        # Here, not at the caller: every load of the rig would otherwise print it again.
-        warnings.warn(f"rig {rig_name}: [display.panel] aspect {aspect[0]:g}:{aspect[1]:g} differs from panel_pixels "
-                      f"{width} x {height}; the superpixel positions follow the aspect, the exported frames the pixels",
-                      DisplexWarning, stacklevel=1)
+        warn_once(f"rig {rig_name}: [display.panel] aspect {aspect[0]:g}:{aspect[1]:g} differs from panel_pixels "
+                  f"{width} x {height}; the superpixel positions follow the aspect, the exported frames the pixels")
     return panel
 
 

@@ -15,7 +15,7 @@ import torch
 
 from capture_sim.array_files import read_arrays, read_meta
 from capture_sim.atomic import save_npz, strict_json
-from capture_sim.errors import DisplexWarning, InputError, check_array, one_line
+from capture_sim.errors import DisplexWarning, InputError, check_array, one_line, warn_once
 from capture_sim.geometry import points_from_depth
 from capture_sim.rig import Camera, Rig, check_light_positions
 
@@ -258,9 +258,8 @@ def rig_for_scene(rig: Rig, scene: Scene) -> Rig:
         raise InputError(f"scene {scene.name}: its light positions are rig {rig.name}'s in millimetres; scene files use metres (divide by 1000)")
     recorded = scene.meta.get("rig")
     if isinstance(recorded, str) and recorded != rig.name:
-        # One line for all the scenes of that rig (a constant message at a constant place).
-        warnings.warn(f"scenes made for rig {recorded!r} are used with rig {rig.name!r}: their own light positions and "
-                      "intrinsics, its display and sensor", DisplexWarning, stacklevel=1)
+        warn_once(f"scenes made for rig {recorded!r} are used with rig {rig.name!r}: their own light positions and "
+                  "intrinsics, its display and sensor")  # one line for all the scenes of that rig
     elif shift > LIGHT_MISMATCH_M:
         warnings.warn(f"scene {scene.name}: its light positions differ from rig {rig.name}'s by up to {shift:.3f} m; "
                       "the scene's own light positions are used, with the rig's display and sensor", DisplexWarning, stacklevel=2)

@@ -12,6 +12,14 @@ TOLERANCE = {
 }
 
 
+@pytest.fixture(autouse=True)
+def fresh_warnings():
+    """Every test sees the warnings ``capture_sim.errors.warn_once`` would give a new command."""
+    from capture_sim.errors import forget_warnings
+
+    forget_warnings()
+
+
 @pytest.fixture
 def reference_rig():
     from capture_sim.rig import load_rig

@@ -162,13 +162,16 @@ def test_scene_lights_far_from_the_rig_are_reported(tmp_path, scene_file, capsys
     text = (load_rig.__globals__["RIG_DIR"] / "panel-32in-5x10.toml").read_text()
     (tmp_path / "flat.toml").write_text(text.replace("rows = 5", "rows = 9").replace("cols = 10", "cols = 16"))
     scene = load_scene(scene_file)
-    unnamed = tmp_path / "unnamed"
+    unnamed, named = tmp_path / "unnamed", tmp_path / "named"
     unnamed.mkdir()
+    named.mkdir()
     for index in range(3):
         meta = {key: value for key, value in scene.meta.items() if key not in ("rig", "file")}
         save_scene(dataclasses.replace(scene, meta={**meta, "name": f"copy{index}"}), unnamed / f"copy{index}.npz")
+        save_scene(dataclasses.replace(scene, meta={**meta, "name": f"copy{index}", "rig": "dir-odyssey-ark"}), named / f"copy{index}.npz")
     recorded = "displex: warning: scenes made for rig 'dir-odyssey-ark' are used with rig 'panel-32in-5x10': their own light positions"
     for rig, scenes, warning, count in ((str(tmp_path / "flat.toml"), scene_file, recorded, 1), ("dir-odyssey-ark", scene_file, recorded, 0),
+                                        (str(tmp_path / "flat.toml"), named, recorded, 1),  # importing scipy between scenes reset Python's registry
                                         (str(tmp_path / "flat.toml"), unnamed, "its light positions differ from rig panel-32in-5x10's", 3)):
         capsys.readouterr()
         assert run(["evaluate", "--patterns", "olat", "--scenes", str(scenes), "--rig", rig]) == 0

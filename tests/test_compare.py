@@ -701,3 +701,17 @@ def test_summary_states_the_answer_first_against_plain_computation():
     no_search = fake_results()
     no_search["methods"] = [m for m in no_search["methods"] if m["kind"] != "search"]
     assert all(c["best_tuned"] is None and c["ratio_tuned"] is None for c in summary_tables(no_search)["learned_vs_heuristic"])
+    # All-invalid learned patterns win nothing; an M where every method is all-invalid is said so;
+    # without learned runs nothing is said of learning seeds.
+    for method in results["methods"]:
+        if method["kind"] == "learned":
+            for evaluation in method["evaluations"]:
+                evaluation.update(invalid_fraction=1.0, mae=1.0)
+    text = "\n".join(summary_section(results, summary_tables(results)))
+    assert "the learned patterns leave every pixel invalid" in text and "better on" not in text and "most accurate: learned" not in text
+    for method in results["methods"]:
+        for evaluation in method["evaluations"]:
+            evaluation["invalid_fraction"] = 1.0
+    assert "- M = 2: every method leaves every pixel invalid" in "\n".join(summary_section(results, summary_tables(results)))
+    results["methods"] = [m for m in results["methods"] if m["kind"] != "learned"]
+    assert "seed" not in "\n".join(summary_section(results, summary_tables(results)))

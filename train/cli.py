@@ -12,7 +12,7 @@ import warnings
 from pathlib import Path
 
 from capture_sim.atomic import check_output_folder, refuse_overwriting, separate_json, strict_json
-from capture_sim.errors import DisplexWarning, InputError, check_thread_count, one_line
+from capture_sim.errors import DisplexWarning, InputError, check_thread_count, forget_warnings, one_line
 from capture_sim.rig import DEFAULT_RIG, rig_file
 
 NOISE_CHOICES = ("off", "default")
@@ -512,6 +512,7 @@ def _show_warning(message, category, filename, lineno, file=None, line=None, _de
 def run(argv: list[str] | None = None) -> int:
     """Run one command; returns 0 on success, 2 on bad input (after printing one error line), 130
     when interrupted by Ctrl-C (one line; commands that resume say how)."""
+    forget_warnings()  # each command says each of its warn_once messages once
     # Under a strict stdout (e.g. en_US.UTF-8), a path that is not valid UTF-8 would fail its
     # report line after the command's work: it is printed escaped instead, as on stderr, and the
     # stream is restored afterwards (run is also called in-process).

@@ -168,7 +168,8 @@ def learned_against_best(rows: list[dict], counts, noise: float) -> list[dict]:
             "best_tuned": tuned(count, "label"), "best_tuned_mae": tuned(count, "mae"),
             "ratio_tuned": None if count not in searched else learned[count]["mae"] / max(best_tuned[count]["mae"], 1e-12),
         }
-        for count in counts if count in learned and count in best
+        # An all-invalid learned row measures the placeholder normal: no ratio to speak of.
+        for count in counts if count in learned and count in best and not all_invalid(learned[count])
     ]
 
 
@@ -638,8 +639,8 @@ def _write_charts(results: dict, summary: dict, pattern_sets: dict, into: Path) 
     """Write the report's charts into ``into``; returns the ``CHARTS`` keys written."""
     rows = summary["rows"]
     short = f"{len(results['test_scenes'])} test scenes, noise scale {results['default_noise']:g}, analytic PS (OLAT: Woodham); MAE averaged over scenes."
-    several_seeds = any(row["seeds"] > 1 for row in rows if row["kind"] == "learned")
-    seeds_note = " Learned: mean over seeds, bars = std." if several_seeds else " Learned: one seed."
+    learned_seeds = [row["seeds"] for row in rows if row["kind"] == "learned"]
+    seeds_note = "" if not learned_seeds else " Learned: mean over seeds, bars = std." if max(learned_seeds) > 1 else " Learned: one seed."
     save_figure(chart_mae_vs_patterns(rows, short + seeds_note), into / CHARTS["mae_vs_M"])
     save_figure(chart_mae_vs_cost(rows, "capture_seconds", f"capture time (s) = M x {results['exposure_ms']:g} ms x e / e_white", "Accuracy against capture time",
                                   short), into / CHARTS["mae_vs_capture_time"])
@@ -716,14 +717,18 @@ def summary_section(results: dict, summary: dict) -> list[str]:
     rows, default = summary["rows"], results["default_noise"]
     best = lowest_mae_per_m(rows, ("learned", "rerender", "heuristic", "search", "external"))
     comparisons = {c["M"]: c for c in summary["learned_vs_heuristic"] if math.isclose(c["noise_scale"], default)}
+    learned_rows = learned_rows_per_m(rows)
     lines = ["## Summary", "", f"At noise scale {default:g} (lower MAE is better):", ""]
     for count in results["pattern_counts"]:
         if count not in best:
+            lines.append(f"- M = {count}: every method leaves every pixel invalid (see the tables).")
             continue
         winner = best[count]
         name = "learned patterns" if winner["kind"] == "learned" else winner["label"]
         text = f"- M = {count}: most accurate: {name}, MAE {winner['mae']:.2f} deg (capture {winner['capture_seconds']:.2f} s)"
-        if count in comparisons:
+        if count in learned_rows and all_invalid(learned_rows[count]):
+            text += "; the learned patterns leave every pixel invalid"
+        elif count in comparisons:
             c = comparisons[count]
             wins, scenes = _scene_wins(results, count, c["best_heuristic"], default)
             learned = "" if winner["kind"] == "learned" else f"; learned {c['learned_mae']:.2f} deg"
@@ -731,10 +736,12 @@ def summary_section(results: dict, summary: dict) -> list[str]:
                      f"{c['ratio']:.3f}" + (f", learned better on {wins} of {scenes} test scenes" if scenes else ""))
         lines.append(text + ".")
     seeds = sorted({m["seed"] for m in results["methods"] if m["kind"] == "learned"})
+    learning = ""
+    if seeds:
+        learning = f", learned patterns from {len(seeds)} learning seed{'s' if len(seeds) > 1 else ' (no seed spread measured)'}"
     lines += ["", f"Evidence: {len(results['test_scenes'])} test scenes, one noise draw per scene and method (the same draws for "
-              f"every method), learned patterns from {len(seeds) or 'no'} learning seed{'s' if len(seeds) != 1 else ''}"
-              + ("" if len(seeds) > 1 else " (no seed spread measured)") + ". A pixel the solver flags invalid counts in the MAE with "
-              "the placeholder normal (0, 0, -1), facing the camera; the invalid share is in the tables below.", ""]
+              f"every method){learning}. A pixel the solver flags invalid counts in the MAE with the placeholder normal "
+              "(0, 0, -1), facing the camera; the invalid share is in the tables below.", ""]
     return lines
 
 
