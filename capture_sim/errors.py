@@ -27,14 +27,16 @@ class DisplexWarning(UserWarning):
 _WARNED: set = set()
 
 
-def warn_once(message: str) -> None:
+def warn_once(message: str, stacklevel: int = 1) -> None:
     """Issue ``message`` as a ``DisplexWarning`` unless it was issued already since the last
-    ``forget_warnings`` (each command starts afresh): one cause met again (a rig loaded twice,
-    every scene of one set) says so once. Python's own once-per-place registry is not enough: any
-    change of the warning filters, as importing scipy or matplotlib makes, clears it."""
+    ``forget_warnings`` (each command starts afresh; a Python session until it calls that): one
+    cause met again (a rig loaded twice, every scene of one set) says so once. Python's own
+    once-per-place registry is not enough: any change of the warning filters, as importing scipy
+    or matplotlib makes, clears it. ``stacklevel`` as ``warnings.warn``'s, counted from the caller
+    of this function. A warning that a filter turns into an error is not counted as said."""
     if message not in _WARNED:
+        warnings.warn(message, DisplexWarning, stacklevel=stacklevel + 1)
         _WARNED.add(message)
-        warnings.warn(message, DisplexWarning, stacklevel=3)
 
 
 def forget_warnings() -> None:

@@ -438,7 +438,8 @@ def _panel_settings(display: dict, rig_name: str) -> dict:
     usable = all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < math.inf for v in aspect) if isinstance(aspect, (list, tuple)) else False
     if usable and len(aspect) == 2 and abs((aspect[0] / aspect[1]) / (width / height) - 1) > 0.01:
         warn_once(f"rig {rig_name}: [display.panel] aspect {aspect[0]:g}:{aspect[1]:g} differs from panel_pixels "
-                  f"{width} x {height}; the superpixel positions follow the aspect, the exported frames the pixels")
+                  f"{width} x {height}; the superpixel positions follow the aspect, the exported frames the pixels",
+                  stacklevel=4)  # the caller of load_rig
     return panel
 
 

@@ -259,7 +259,7 @@ def rig_for_scene(rig: Rig, scene: Scene) -> Rig:
     recorded = scene.meta.get("rig")
     if isinstance(recorded, str) and recorded != rig.name:
         warn_once(f"scenes made for rig {recorded!r} are used with rig {rig.name!r}: their own light positions and "
-                  "intrinsics, its display and sensor")  # one line for all the scenes of that rig
+                  "intrinsics, its display and sensor", stacklevel=2)  # one line for all the scenes of that rig
     elif shift > LIGHT_MISMATCH_M:
         warnings.warn(f"scene {scene.name}: its light positions differ from rig {rig.name}'s by up to {shift:.3f} m; "
                       "the scene's own light positions are used, with the rig's display and sensor", DisplexWarning, stacklevel=2)

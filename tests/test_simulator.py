@@ -261,7 +261,9 @@ def test_panel_aspect_follows_the_panel_pixels_unless_stated():
     """A [display.panel] without ``aspect`` takes it from ``panel_pixels`` (square display pixels:
     16:10 here, where the old 16:9 default put the outer rows about 1 cm off); a stated aspect
     that disagrees with the pixels is warned."""
-    from capture_sim.errors import DisplexWarning
+    import warnings
+
+    from capture_sim.errors import DisplexWarning, forget_warnings
     from capture_sim.rig import panel_positions, rig_from_dict
 
     camera = {"fx": 100.0, "fy": 100.0, "cx": 15.5, "cy": 11.5, "height": 24, "width": 32}
@@ -270,5 +272,16 @@ def test_panel_aspect_follows_the_panel_pixels_unless_stated():
     np.testing.assert_allclose(rig.light_positions, panel_positions(6, 10, 24.0, (1920.0, 1200.0)))
     height = rig.light_positions[-1, 0, 1] - rig.light_positions[0, 0, 1]
     assert height == pytest.approx(24 * 0.0254 * 10 / math.hypot(16, 10) * 5 / 6)
+    odd = {"camera": camera, "display": {"panel": {**panel, "aspect": [16, 9]}, "panel_pixels": [1200, 1920]}}
     with pytest.warns(DisplexWarning, match=r"rig desk: \[display.panel\] aspect 16:9 differs from panel_pixels 1920 x 1200"):
-        rig_from_dict({"camera": camera, "display": {"panel": {**panel, "aspect": [16, 9]}, "panel_pixels": [1200, 1920]}}, "desk")
+        rig_from_dict(odd, "desk")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rig_from_dict(odd, "desk")
+    assert not caught  # said once per command (``warn_once``) ...
+    forget_warnings()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for _ in range(2):  # ... but a warning raised as an error is not counted as said
+            with pytest.raises(DisplexWarning):
+                rig_from_dict(odd, "desk")

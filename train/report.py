@@ -168,8 +168,7 @@ def learned_against_best(rows: list[dict], counts, noise: float) -> list[dict]:
             "best_tuned": tuned(count, "label"), "best_tuned_mae": tuned(count, "mae"),
             "ratio_tuned": None if count not in searched else learned[count]["mae"] / max(best_tuned[count]["mae"], 1e-12),
         }
-        # An all-invalid learned row measures the placeholder normal: no ratio to speak of.
-        for count in counts if count in learned and count in best and not all_invalid(learned[count])
+        for count in counts if count in learned and count in best
     ]
 
 
