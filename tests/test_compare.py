@@ -312,6 +312,11 @@ def test_learned_against_more_captures_against_plain_computation():
     # At the default noise 0.5: learned M = 2 averages 8.5; the best heuristic at M = 4 is a (10 - 2).
     assert [(c["M"], c["heuristic_M"], c["best_heuristic"]) for c in pairs] == [(2, 4, "a")]
     assert pairs[0]["learned_mae"] == pytest.approx(8.5) and pairs[0]["ratio"] == pytest.approx(8.5 / 8.0)
+    for method in results["methods"]:  # all-invalid learned patterns at M = 2 match nothing
+        if method["kind"] == "learned" and method["M"] == 2:
+            for evaluation in method["evaluations"]:
+                evaluation.update(invalid_fraction=1.0, mae=1.0)
+    assert summary_tables(results)["learned_vs_more_captures"] == []
 
 
 def test_specular_free_summary_against_plain_computation():
@@ -709,6 +714,12 @@ def test_summary_states_the_answer_first_against_plain_computation():
                 evaluation.update(invalid_fraction=1.0, mae=1.0)
     text = "\n".join(summary_section(results, summary_tables(results)))
     assert "the learned patterns leave every pixel invalid" in text and "better on" not in text and "most accurate: learned" not in text
+    # ... and no re-rendering ratio against them (the placeholder MAE is no baseline).
+    learned_seed0 = next(m for m in results["methods"] if m["id"] == "learned0")
+    results["methods"].append(dict(learned_seed0, id="rr", kind="rerender", series="learned_rerender", info={"rerender_weight": 0.5},
+                                   evaluations=[dict(e, mae=5.0, invalid_fraction=0.1) for e in learned_seed0["evaluations"]]))
+    assert summary_tables(results)["rerender"] == []
+    results["methods"].pop()
     for method in results["methods"]:
         for evaluation in method["evaluations"]:
             evaluation["invalid_fraction"] = 1.0

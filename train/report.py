@@ -108,7 +108,8 @@ def summary_tables(results: dict) -> dict:
             if method["kind"] != "rerender" or normal_only is None:
                 continue
             with_rerender, without = _evaluation(method, noise), _evaluation(normal_only, noise)
-            if with_rerender is not None and without is not None:
+            # An all-invalid side measures the placeholder normal: no comparison to make.
+            if with_rerender is not None and without is not None and not (all_invalid(with_rerender) or all_invalid(without)):
                 rerender.append({"M": method["M"], "noise_scale": noise, "seed": method["seed"], "weight": method["info"].get("rerender_weight"),
                                  "normal_only_mae": without["mae"], "rerender_mae": with_rerender["mae"],
                                  "ratio": with_rerender["mae"] / max(without["mae"], 1e-12)})
@@ -181,7 +182,8 @@ def learned_against_more_captures(rows: list[dict]) -> list[dict]:
         dicts with M, learned_mae, heuristic_M, best_heuristic, best_heuristic_mae and ratio,
         sorted by (M, heuristic_M).
     """
-    learned = learned_rows_per_m(rows)
+    # All-invalid learned rows measure the placeholder normal: they match nothing.
+    learned = {count: row for count, row in learned_rows_per_m(rows).items() if not all_invalid(row)}
     best = lowest_mae_per_m(rows, ("heuristic",))
     return [
         {"M": count, "learned_mae": learned[count]["mae"], "heuristic_M": more, "best_heuristic": best[more]["series"],
