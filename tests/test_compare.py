@@ -700,7 +700,7 @@ def test_summary_states_the_answer_first_against_plain_computation():
     text = "\n".join(summary_section(results, summary))
     assert "- M = 2: most accurate: learned patterns, MAE 8.50 deg" in text  # (8 + 9) / 2 at noise 0.5 beats search 9.5 and a 10
     assert "; best heuristic family a 10.00 deg; learned / heuristic 0.850, learned better on 1 of 2 test scenes" in text
-    assert "2 test scenes" in text and "from 2 learning seeds" in text and "placeholder normal" in text
+    assert "2 test scenes" in text and "from 2 learning seeds at every M" in text and "placeholder normal" in text
     comparisons = {c["noise_scale"]: c for c in summary["learned_vs_heuristic"]}
     assert comparisons[0.5]["best_tuned"] == "s"
     no_search = fake_results()

@@ -736,10 +736,18 @@ def summary_section(results: dict, summary: dict) -> list[str]:
             text += (f"{learned}; best heuristic family {c['best_heuristic']} {c['best_heuristic_mae']:.2f} deg; learned / heuristic "
                      f"{c['ratio']:.3f}" + (f", learned better on {wins} of {scenes} test scenes" if scenes else ""))
         lines.append(text + ".")
-    seeds = sorted({m["seed"] for m in results["methods"] if m["kind"] == "learned"})
+    seeds: dict = defaultdict(set)
+    for method in results["methods"]:
+        if method["kind"] == "learned":
+            seeds[method["M"]].add(method["seed"])
     learning = ""
     if seeds:
-        learning = f", learned patterns from {len(seeds)} learning seed{'s' if len(seeds) > 1 else ' (no seed spread measured)'}"
+        counts = sorted({len(found) for found in seeds.values()})
+        if len(counts) == 1:
+            per_m = f"{counts[0]} learning seed{'s' if counts[0] > 1 else ''} at every M"
+        else:
+            per_m = "learning seeds " + ", ".join(f"{len(seeds[count])} at M = {count}" for count in sorted(seeds))
+        learning = f", learned patterns from {per_m}" + ("" if max(counts) > 1 else " (no seed spread measured)")
     lines += ["", f"Evidence: {len(results['test_scenes'])} test scenes, one noise draw per scene and method (the same draws for "
               f"every method){learning}. A pixel the solver flags invalid counts in the MAE with the placeholder normal "
               "(0, 0, -1), facing the camera; the invalid share is in the tables below.", ""]
