@@ -726,3 +726,26 @@ def test_summary_states_the_answer_first_against_plain_computation():
     assert "- M = 2: every method leaves every pixel invalid" in "\n".join(summary_section(results, summary_tables(results)))
     results["methods"] = [m for m in results["methods"] if m["kind"] != "learned"]
     assert "seed" not in "\n".join(summary_section(results, summary_tables(results)))
+
+
+def test_all_invalid_learned_patterns_get_no_ratio_anywhere_in_the_report():
+    """The placeholder normal's MAE is no measurement: an all-invalid learned set is marked in the
+    advantage table, named in the noise verdict, and left out of the specular sentence."""
+    from train.report import _advantage_section, specular_free_section
+
+    results = fake_results()
+    for method in results["methods"]:
+        if method["kind"] == "learned":
+            method["evaluations"][1].update(invalid_fraction=1.0, mae=14.0)  # every pixel invalid at noise 2 only
+        method["specular_free"] = dict(method["evaluations"][0])
+    summary = summary_tables(results)
+    text = "\n".join(_advantage_section(summary, results["pattern_counts"]))
+    assert "14.00 (all invalid)" in text and "ratio 0.850 (noise 0.5) -> every pixel invalid (noise 2)" in text
+    assert "the learned patterns leave every pixel invalid at noise 2" in text and "as the noise rises" not in text
+    for method in results["methods"]:
+        if method["kind"] == "learned":
+            method["evaluations"][0].update(invalid_fraction=1.0)
+            method["specular_free"].update(invalid_fraction=1.0)
+    summary = summary_tables(results)
+    lines = specular_free_section(dict(results, specular_free={"enabled": True}), summary, summary["rows"])
+    assert "- M = 2: the learned patterns leave every pixel invalid (no ratio)." in lines, lines

@@ -164,6 +164,8 @@ def learned_against_best(rows: list[dict], counts, noise: float) -> list[dict]:
     return [
         {
             "M": count, "noise_scale": noise, "learned_mae": learned[count]["mae"],
+            # The learned MAE, and so the ratios, then measure the placeholder normal.
+            "learned_all_invalid": all_invalid(learned[count]),
             "best_heuristic": best[count]["series"], "best_heuristic_mae": best[count]["mae"],
             "ratio": learned[count]["mae"] / max(best[count]["mae"], 1e-12),
             "best_tuned": tuned(count, "label"), "best_tuned_mae": tuned(count, "mae"),
@@ -567,6 +569,9 @@ def specular_free_section(results: dict, summary: dict, rows: list[dict]) -> lis
     with_specular = {c["M"]: c for c in summary["learned_vs_heuristic"] if math.isclose(c["noise_scale"], default)}
     for c in free["learned_vs_heuristic"]:
         full = with_specular.get(c["M"])
+        if c.get("learned_all_invalid") or (full and full.get("learned_all_invalid")):
+            lines.append(f"- M = {c['M']}: the learned patterns leave every pixel invalid (no ratio).")
+            continue
         head = f"- M = {c['M']}: learned / best heuristic = "
         head += f"{full['ratio']:.3f} on the scenes ({full['best_heuristic']}), " if full else ""
         line = head + f"{c['ratio']:.3f} without specular reflection ({c['best_heuristic']}, {c['best_heuristic_mae']:.2f} deg)"
@@ -779,15 +784,22 @@ def _advantage_section(summary: dict, counts: list[int]) -> list[str]:
     lines = ["## How the advantage of learned patterns changes with noise", "",
              "Ratio = learned MAE / best heuristic MAE (< 1: learned is better). Best heuristic: the family with the lowest MAE at "
              "its default parameters at that M and noise; 'tuned' also counts the NLopt-searched families ('-' where no search ran at that M).", ""]
-    body = [[str(c["M"]), f"{c['noise_scale']:g}", _fmt(c["learned_mae"]), f"{c['best_heuristic']} ({_fmt(c['best_heuristic_mae'])})",
-             _fmt(c["ratio"], 3), "-" if c["best_tuned"] is None else f"{c['best_tuned']} ({_fmt(c['best_tuned_mae'])})",
-             _fmt(c["ratio_tuned"], 3)] for c in comparisons]
+    def failed(c):
+        return c.get("learned_all_invalid", False)
+
+    body = [[str(c["M"]), f"{c['noise_scale']:g}", _fmt(c["learned_mae"]) + (" (all invalid)" if failed(c) else ""),
+             f"{c['best_heuristic']} ({_fmt(c['best_heuristic_mae'])})", "-" if failed(c) else _fmt(c["ratio"], 3),
+             "-" if c["best_tuned"] is None else f"{c['best_tuned']} ({_fmt(c['best_tuned_mae'])})",
+             "-" if failed(c) else _fmt(c["ratio_tuned"], 3)] for c in comparisons]
     lines += [_table(["M", "noise", "learned MAE", "best heuristic (MAE)", "ratio", "best tuned (MAE)", "ratio (tuned)"], body), ""]
     for count in counts:
         at_m = sorted((c for c in comparisons if c["M"] == count), key=lambda c: c["noise_scale"])
         if len(at_m) > 1:
-            trend = " -> ".join(f"{c['ratio']:.3f} (noise {c['noise_scale']:g})" for c in at_m)
-            lines.append(f"- M = {count}: ratio {trend}; {noise_verdict(at_m[0]['ratio'], at_m[-1]['ratio'])} as the noise rises.")
+            trend = " -> ".join(f"{'every pixel invalid' if failed(c) else format(c['ratio'], '.3f')} (noise {c['noise_scale']:g})" for c in at_m)
+            failures = [f"{c['noise_scale']:g}" for c in at_m if failed(c)]
+            verdict = (f"the learned patterns leave every pixel invalid at noise {', '.join(failures)}" if failures
+                       else f"{noise_verdict(at_m[0]['ratio'], at_m[-1]['ratio'])} as the noise rises")
+            lines.append(f"- M = {count}: ratio {trend}; {verdict}.")
     return lines + [""]
 
 
