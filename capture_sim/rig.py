@@ -394,7 +394,10 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
         if "light_positions" in display:
             positions = _numbers("display light_positions", display["light_positions"])
         else:
-            positions = panel_positions(**_panel_settings(display, default_name))
+            panel = _panel_settings(display)
+            positions = panel_positions(**panel)  # validates the table, aspect included
+            if "aspect" in display["panel"]:
+                _warn_aspect_mismatch(panel, display.get("panel_pixels"), default_name)
         exposure = config.get("exposure", "auto")
         bit_depth = config.get("bit_depth", 12)
         return Rig(
@@ -423,24 +426,27 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
         raise InputError(f"rig {default_name}: {err or type(err).__name__}") from None
 
 
-def _panel_settings(display: dict, rig_name: str) -> dict:
+def _panel_settings(display: dict) -> dict:
     """The ``[display.panel]`` table with its aspect ratio from ``panel_pixels`` (square display
-    pixels) when it gives none; a stated aspect that differs from the pixels' by over 1% is warned
-    (the superpixel positions follow the stated aspect, the exported frames the pixels)."""
+    pixels) when it gives none."""
     panel = dict(display["panel"])
-    if display.get("panel_pixels") is None:
-        return panel
-    height, width = panel_size(display["panel_pixels"], "display panel_pixels")
-    if "aspect" not in panel:
+    if "aspect" not in panel and display.get("panel_pixels") is not None:
+        height, width = panel_size(display["panel_pixels"], "display panel_pixels")
         panel["aspect"] = (float(width), float(height))
-        return panel
-    aspect = panel["aspect"]
-    usable = all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < math.inf for v in aspect) if isinstance(aspect, (list, tuple)) else False
-    if usable and len(aspect) == 2 and abs((aspect[0] / aspect[1]) / (width / height) - 1) > 0.01:
-        warn_once(f"rig {rig_name}: [display.panel] aspect {aspect[0]:g}:{aspect[1]:g} differs from panel_pixels "
+    return panel
+
+
+def _warn_aspect_mismatch(panel: dict, panel_pixels, rig_name: str) -> None:
+    """Warn when a stated (already validated) aspect differs from ``panel_pixels``' by over 1%:
+    the superpixel positions follow the aspect, the exported frames the pixels."""
+    if panel_pixels is None:
+        return
+    height, width = panel_size(panel_pixels, "display panel_pixels")
+    aspect_width, aspect_height = panel["aspect"]
+    if abs((aspect_width / aspect_height) / (width / height) - 1) > 0.01:
+        warn_once(f"rig {rig_name}: [display.panel] aspect {aspect_width:g}:{aspect_height:g} differs from panel_pixels "
                   f"{width} x {height}; the superpixel positions follow the aspect, the exported frames the pixels",
                   stacklevel=4)  # the caller of load_rig
-    return panel
 
 
 MAX_PANEL_SIDE = 65535

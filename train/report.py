@@ -741,17 +741,14 @@ def summary_section(results: dict, summary: dict) -> list[str]:
             text += (f"{learned}; best heuristic family {c['best_heuristic']} {c['best_heuristic_mae']:.2f} deg; learned / heuristic "
                      f"{c['ratio']:.3f}" + (f", learned better on {wins} of {scenes} test scenes" if scenes else ""))
         lines.append(text + ".")
-    seeds: dict = defaultdict(set)
-    for method in results["methods"]:
-        if method["kind"] == "learned":
-            seeds[method["M"]].add(method["seed"])
+    seeds = {count: row["seeds"] for count, row in learned_rows.items()}  # aggregate_rows counts them
     learning = ""
     if seeds:
-        counts = sorted({len(found) for found in seeds.values()})
+        counts = sorted(set(seeds.values()))
         if len(counts) == 1:
             per_m = f"{counts[0]} learning seed{'s' if counts[0] > 1 else ''} at every M"
         else:
-            per_m = "learning seeds " + ", ".join(f"{len(seeds[count])} at M = {count}" for count in sorted(seeds))
+            per_m = "learning seeds " + ", ".join(f"{seeds[count]} at M = {count}" for count in sorted(seeds))
         learning = f", learned patterns from {per_m}" + ("" if max(counts) > 1 else " (no seed spread measured)")
     lines += ["", f"Evidence: {len(results['test_scenes'])} test scenes, one noise draw per scene and method (the same draws for "
               f"every method){learning}. A pixel the solver flags invalid counts in the MAE with the placeholder normal "

@@ -21,14 +21,20 @@ from capture_sim.scene import scene_paths
 def recorded_rig(path: str | Path, what: str) -> str | None:
     """The rig name a pattern or scene file records in its meta, or None (a plain .npy, no meta,
     no name). A file that cannot be read gives None: the command's own loading reports it."""
+    return _record(path, what)[0]
+
+
+def _record(path: str | Path, what: str, keys: tuple[str, ...] = ()) -> tuple[str | None, dict]:
+    """(``recorded_rig``, the arrays ``keys`` of the file), read in one pass; (None, {}) for a
+    file that cannot be read."""
     try:
-        contents = read_arrays(path, what, keys=("meta",))
+        contents = read_arrays(path, what, keys=("meta", *keys))
         if not isinstance(contents, dict):
-            return None
+            return None, {}
         name = read_meta(contents, Path(path), what).get("rig")
     except InputError:
-        return None
-    return name if isinstance(name, str) else None
+        return None, {}
+    return (name if isinstance(name, str) else None), contents
 
 
 def rig_for_inputs(given: str | None, pattern_files=(), scenes=(), unchosen: str = "no --rig was given",
@@ -66,8 +72,10 @@ def warn_other_rigs(rig, pattern_files, what: str = "pattern file") -> None:
     to the command, which refuses or skips them."""
     others: dict = defaultdict(list)
     for path in pattern_files:
-        name = recorded_rig(path, what)
-        if name is not None and name != rig.name and _grid(path) == (rig.rows, rig.cols):
+        name, contents = _record(path, what, ("patterns",))
+        shape = getattr(contents.get("patterns"), "shape", ())
+        # A file on another grid is left to the command, which refuses or skips it.
+        if name is not None and name != rig.name and len(shape) == 4 and tuple(shape[1:3]) == (rig.rows, rig.cols):
             others[name].append(Path(path).name)
     for name, files in others.items():
         listed = ", ".join(files[:3]) + (f" and {len(files) - 3} more" if len(files) > 3 else "")
@@ -75,13 +83,3 @@ def warn_other_rigs(rig, pattern_files, what: str = "pattern file") -> None:
         warnings.warn(f"{what}{'s' if plural else ''} {listed} {'were' if plural else 'was'} made for rig {name!r}; shown on the "
                       f"display of rig {rig.name!r}, as chosen", DisplexWarning, stacklevel=3)
 
-
-def _grid(path) -> tuple[int, int] | None:
-    """(R, C) of a readable pattern file, else None."""
-    try:
-        contents = read_arrays(path, "pattern", keys=("patterns",))
-    except InputError:
-        return None
-    values = contents.get("patterns") if isinstance(contents, dict) else contents
-    shape = getattr(values, "shape", ())
-    return tuple(shape[1:3]) if len(shape) == 4 else None
