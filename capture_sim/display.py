@@ -34,6 +34,9 @@ def display_emission(patterns: torch.Tensor, backlight: torch.Tensor, gamma: flo
     flat = torch.as_tensor(patterns).reshape(patterns.shape[0], math.prod(patterns.shape[1:-1]), 3)  # M = 0 too
     light_backlight = torch.as_tensor(backlight, dtype=flat.dtype).reshape(1, -1, 1)
     check_array("backlight", light_backlight, (1, flat.shape[1], 1), value_range=(0.0, 1.0))
+    level = flat + light_backlight
     # The floor keeps the gradient finite at a black, backlight-free superpixel when gamma < 1
-    # (d/dx x^gamma is infinite at 0); the value it adds, tiny^gamma, is below any capture's noise.
-    return scale * (flat + light_backlight).clamp_min(torch.finfo(flat.dtype).tiny) ** gamma
+    # (d/dx x^gamma is infinite at 0); it must not emit: auto exposure would lift tiny^gamma of an
+    # all-black set to 0.9 of full scale.
+    powered = level.clamp_min(torch.finfo(flat.dtype).tiny) ** gamma
+    return scale * torch.where(level > 0, powered, torch.zeros_like(powered))

@@ -79,6 +79,11 @@ def render_olat(
     return diffuse.permute(1, 0, 2), specular.permute(1, 0, 2)
 
 
+UNIT_TOLERANCE = 1e-2
+"""How far from 1 the length of a normal given to ``render_olat`` may be (float16 normals are
+rounded to about 1e-3)."""
+
+
 def _check_inputs(points, normals, lights, weights, diffuse_albedo, specular_albedo, roughness, visibility, fresnel) -> None:
     """``InputError`` for the shapes and ranges ``render_olat`` documents (NaN anywhere included)."""
     named = {"points": points, "normals": normals, "lights": lights, "weights": weights, "diffuse_albedo": diffuse_albedo,
@@ -86,9 +91,14 @@ def _check_inputs(points, normals, lights, weights, diffuse_albedo, specular_alb
     for name, value in named.items():
         if value is not None and not isinstance(value, torch.Tensor):
             raise InputError(f"{name}: expected a torch tensor, got {type(value).__name__}")
+        if value is not None and not value.is_floating_point():
+            raise InputError(f"{name}: expected a floating-point tensor, got {value.dtype}")
     check_array("points", points, ("N", 3))
     count = points.shape[0]
     check_array("normals", normals, (count, 3))
+    lengths = normals.detach().norm(dim=-1)
+    if lengths.numel() and float((lengths - 1).abs().max()) > UNIT_TOLERANCE:  # a longer normal would scale the radiance
+        raise InputError(f"normals: expected unit vectors, got lengths from {float(lengths.min()):g} to {float(lengths.max()):g}")
     check_array("lights", lights, ("K", 3))
     check_array("weights", weights, (count, "J"), value_range=(0.0, math.inf))
     bases = weights.shape[1]

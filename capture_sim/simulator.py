@@ -86,8 +86,13 @@ def light_transport(olat, mask=None, dtype=torch.float32) -> LightTransport:
 
     Returns:
         LightTransport with a (3, K, N) matrix, N = number of selected pixels.
+
+    Raises:
+        InputError: wrong shapes, a dtype that is not floating, NaN, infinite or negative values.
     """
     check_array("olat", olat, ("K", "H", "W", 3), finite=False)
+    if not dtype.is_floating_point:
+        raise InputError(f"light_transport: dtype must be a floating-point dtype, got {dtype}")
     num_lights, height, width, _ = olat.shape
     source = torch.as_tensor(olat)
     if mask is None:
@@ -102,6 +107,8 @@ def light_transport(olat, mask=None, dtype=torch.float32) -> LightTransport:
         matrix[:, k, :] = source[k].reshape(-1, 3)[index].T
     if not bool(torch.isfinite(matrix).all()):
         raise InputError("olat: contains NaN or infinite values")
+    if matrix.numel() and float(matrix.min()) < 0:
+        raise InputError(f"olat: has negative radiance (min {float(matrix.min()):g}); radiance per unit display intensity is >= 0")
     return LightTransport(matrix, index, height, width)
 
 
@@ -156,6 +163,8 @@ def auto_exposure(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERC
     # 1e-20 is still a scene); below the dtype's smallest normal the gain would overflow it.
     if level == 0:
         return 1.0
+    if level < 0:
+        raise InputError(f"auto exposure: the radiance's {percentile:g}th percentile {level:g} is negative; radiance is >= 0")
     if not torch.finfo(values.dtype).tiny <= level < math.inf:
         raise InputError(f"auto exposure: the radiance's {percentile:g}th percentile {level:g} is outside the range of "
                          f"{values.dtype} (the scene's OLAT values are scaled too far); rescale the scene")

@@ -102,7 +102,16 @@ def _check_images(prediction, truth, mask) -> tuple[torch.Tensor, torch.Tensor, 
         raise InputError("mask selects no pixels")
     if prediction.numel() == 0:
         raise InputError(f"no images to compare: prediction has shape {tuple(prediction.shape)}")
+    for name, images in (("prediction", prediction), ("truth", truth)):
+        largest = float(images.detach().abs().max())
+        if largest > MAX_IMAGE_VALUE:
+            raise InputError(f"{name}: values up to {largest:g}, not images in full-scale units (1 = saturation); their squared errors would overflow")
     return prediction, truth, mask
+
+
+MAX_IMAGE_VALUE = 1e100
+"""Largest magnitude ``psnr`` and ``ssim`` accept: squares and products of larger values overflow
+float64 (a PSNR of -inf, an SSIM of NaN)."""
 
 
 def psnr(prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> float:
@@ -139,7 +148,7 @@ def ssim(prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, wind
         SSIM averaged over masked pixels, channels and images, in [-1, 1].
     """
     prediction, truth, mask = _check_images(prediction, truth, mask)
-    if window_size < 1 or window_size % 2 == 0:
+    if isinstance(window_size, bool) or not isinstance(window_size, int) or window_size < 1 or window_size % 2 == 0:
         raise InputError(f"window_size must be a positive odd number, got {window_size}")
     height, width = mask.shape
     window = min(window_size, 2 * ((min(height, width) - 1) // 2) + 1)

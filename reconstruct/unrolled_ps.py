@@ -180,7 +180,7 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
     dtype = torch.promote_types(torch.promote_types(captures.dtype, emission.dtype), torch.float32)
     captures, emission = captures.to(dtype), emission.to(dtype)
     if num_pixels == 0:
-        empty = captures[0] * 0  # (0, 3), on the inputs' graph
+        empty = captures[0] * 0 + emission.sum() * 0  # (0, 3), on both inputs' graphs (zero gradients, not None)
         return empty, empty.clone()
     points, lights = points.to(dtype), lights.to(dtype)
     if reach is None:

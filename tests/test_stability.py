@@ -272,3 +272,49 @@ def test_edge_cases_from_the_numerics_review(problem):
     at_centre[0] = 0.0
     normal, _ = solve_ps_unrolled(captures, emission, at_centre, lights, Falloff())
     assert torch.allclose(normal.norm(dim=1), torch.ones(normal.shape[0]), atol=1e-5)
+
+
+def test_edge_cases_from_the_api_fuzz(problem):
+    """Found by fuzzing the public functions: a black backlight-free display emits nothing (its
+    gradient floor emitted tiny ** gamma, which auto exposure lifted to 0.9 of full scale); integer
+    transports, negative radiance, non-float or non-unit render inputs, overflowing images and bad
+    SSIM windows are refused with one clear error; the unrolled solver's empty result reaches
+    both inputs' graphs."""
+    from capture_sim.display import display_emission
+    from capture_sim.errors import InputError
+    from capture_sim.render import render_olat
+    from capture_sim.simulator import auto_exposure, light_transport
+    from reconstruct.metrics import psnr, ssim
+    from reconstruct.unrolled_ps import solve_ps_unrolled
+
+    black = torch.zeros(1, 2, 3, 3, requires_grad=True)
+    emitted = display_emission(black, torch.zeros(2, 3), gamma=1.0)
+    assert float(emitted.detach().abs().max()) == 0.0
+    emitted.sum().backward()
+    assert torch.isfinite(black.grad).all()
+    assert auto_exposure(emitted.detach()) == 1.0
+    with pytest.raises(InputError, match="floating"):
+        light_transport(torch.rand(4, 2, 3, 3), dtype=torch.int32)
+    with pytest.raises(InputError, match="negative"):
+        light_transport(-torch.rand(4, 2, 3, 3))
+    with pytest.raises(InputError, match="negative"):
+        auto_exposure(-torch.rand(2, 10, 3))
+    points, normals, lights = torch.tensor([[0.0, 0.0, 0.5]]), torch.tensor([[0.0, 0.0, -1.0]]), torch.tensor([[0.1, 0.0, 0.0]])
+    args = (torch.ones(1, 1), torch.full((1, 3), 0.5), torch.zeros(1), torch.ones(1))
+    render_olat(points, normals, lights, *args)
+    with pytest.raises(InputError, match="floating"):
+        render_olat(points.int(), normals, lights, *args)
+    with pytest.raises(InputError, match="unit vectors"):
+        render_olat(points, normals * 2, lights, *args)
+    image, mask = torch.rand(2, 8, 9, 3, dtype=torch.float64), torch.ones(8, 9, dtype=torch.bool)
+    for metric in (psnr, ssim):
+        with pytest.raises(InputError, match="full-scale"):
+            metric(image * 1e200, image, mask)
+    for window in (3.0, "11", True):
+        with pytest.raises(InputError, match="window_size"):
+            ssim(image, image, mask, window_size=window)
+    captures, emission, points = (problem[key].float() for key in ("captures", "emission", "points"))
+    emission = emission.clone().requires_grad_()
+    normal, albedo = solve_ps_unrolled(captures[:, :0], emission, points[:0], problem["scene"].lights.float(), Falloff())
+    (normal.sum() + albedo.sum()).backward()
+    assert emission.grad is not None and float(emission.grad.abs().max()) == 0.0
