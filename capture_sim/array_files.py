@@ -45,6 +45,12 @@ def read_arrays(path: str | Path, what: str, keys=None) -> np.ndarray | dict[str
     raise InputError(f"{path}: not a {what} file (its contents are neither a .npz archive nor a .npy array)")
 
 
+def archive_names(path: str | Path) -> list[str]:
+    """Names of the arrays in a .npz archive that ``read_arrays`` has read (without loading them)."""
+    with np.load(path, allow_pickle=False) as data:
+        return list(data.files)
+
+
 def read_meta(arrays: dict, path: str | Path, what: str) -> dict:
     """The JSON object stored as the ``meta`` string of a .npz read by ``read_arrays`` ({} if none).
 

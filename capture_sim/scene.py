@@ -13,12 +13,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from capture_sim.array_files import read_arrays, read_meta
+from capture_sim.array_files import archive_names, read_arrays, read_meta
 from capture_sim.atomic import save_npz, strict_json
 from capture_sim.errors import DisplexWarning, InputError, check_array, one_line, warn_once
 from capture_sim.geometry import points_from_depth
 from capture_sim.rig import Camera, Rig, check_light_positions
 
+MIN_DEPTH_M = 1e-3
+"""Metres: a point this close to the camera is no object in front of a display (and within the
+solvers' default ``min_distance``, so every pixel would be flagged bad geometry)."""
 MAX_DEPTH_M = 20.0
 """Metres: objects sit about half a metre from the camera, so a median depth above this can only be
 another unit (millimetres), refused in scene files and converted by the DIR loader."""
@@ -55,6 +58,12 @@ class Scene:
     @property
     def name(self) -> str:
         return one_line(self.meta.get("name", "scene"))
+
+    @property
+    def label(self) -> str:
+        """'scene NAME (FILE)' for messages: two files may carry one meta name."""
+        named = f"scene {self.name}" if "name" in self.meta else "scene"
+        return named + (f" ({one_line(self.meta['file'])})" if "file" in self.meta else "")
 
     @property
     def height(self) -> int:
@@ -96,9 +105,7 @@ class Scene:
 
 def validate_scene(scene: Scene) -> None:
     """Raise ``InputError`` with one readable line if the scene breaks DESIGN section 7."""
-    name = f"scene {one_line(scene.meta.get('name', ''))}".strip()
-    if "file" in scene.meta:  # the meta name may not say which file is broken
-        name += f" ({one_line(scene.meta['file'])})"
+    name = scene.label
     for key in _ARRAY_KEYS:
         value = getattr(scene, key)
         if value is not None and not isinstance(value, np.ndarray):
@@ -139,8 +146,16 @@ def validate_scene(scene: Scene) -> None:
         raise InputError(
             f"{name}: olat has {num_lights} images but light_positions is a {rows} x {cols} grid ({rows * cols} lights)"
         )
+    for key, shape in (("normal", (height, width, 3)), ("depth", (height, width))):
+        value = getattr(scene, key)
+        if value is not None:
+            check_array(f"{name}: {key}", value, shape, finite=False)
+            bad = ~np.isfinite(value)
+            if bad.any():
+                inside = bad[scene.mask].any(axis=-1) if value.ndim == 3 else bad[scene.mask]
+                where = f"at {int(inside.sum())} pixels inside the mask" if inside.any() else "outside the mask (set them to 0; load_scene does)"
+                raise InputError(f"{name}: {key} has NaN or infinite values {where}")
     if scene.normal is not None:
-        check_array(f"{name}: normal", scene.normal, (height, width, 3))
         inside = np.asarray(scene.normal, dtype=np.float64)[scene.mask]
         # A component beyond 2 is no unit vector, and 1e300 would overflow the norm.
         if inside.size and (float(np.abs(inside).max()) > 2 or float(np.abs(np.linalg.norm(inside, axis=-1) - 1).max()) > 1e-2):
@@ -149,9 +164,9 @@ def validate_scene(scene: Scene) -> None:
         if inside.size and float((inside[:, 2] > 0).mean()) > 0.5:
             raise InputError(f"{name}: most normals face away from the camera (n_z > 0); visible normals have n_z < 0 (README: Conventions)")
     if scene.depth is not None:
-        check_array(f"{name}: depth", scene.depth, (height, width))
-        if bool((scene.depth[scene.mask] <= 0).any()):
-            raise InputError(f"{name}: depth must be positive inside the mask")
+        nearest = float(scene.depth[scene.mask].min())
+        if nearest <= MIN_DEPTH_M:
+            raise InputError(f"{name}: depth must exceed {MIN_DEPTH_M * 1000:g} mm inside the mask, got {nearest:g} (metres?)")
         median = float(np.median(scene.depth[scene.mask]))
         if median > MAX_DEPTH_M:
             raise InputError(f"{name}: depth must be in metres, but its median inside the mask is {median:g} (millimetres?)")
@@ -184,11 +199,31 @@ def load_scene(path: str | Path) -> Scene:
     for required in ("olat", "mask", "K_cam", "light_positions"):
         if required not in arrays:
             raise InputError(f"{path}: scene is missing required array '{required}'")
+    unknown = sorted(set(archive_names(path)) - {*_ARRAY_KEYS, "meta"})
+    if unknown:  # a misspelt optional array ('Depth', 'normals') would silently fall back to its default
+        warn_once(f"{path}: unknown arrays {', '.join(map(repr, unknown))} are ignored (a scene file holds {', '.join(_ARRAY_KEYS)} and meta)")
     # Native byte order (files written on big-endian machines or by other tools), same values.
     arrays = {key: value if value.dtype.isnative else value.astype(value.dtype.newbyteorder("=")) for key, value in arrays.items()}
+    arrays.update(_zero_background(arrays))
     meta.setdefault("name", path.stem)
     meta["file"] = str(path)  # in memory only: outputs are named after the file the user gave
     return Scene(meta=meta, **arrays)
+
+
+def _zero_background(arrays: dict) -> dict:
+    """``normal`` and ``depth`` with non-finite values outside the mask set to 0: ground truth
+    often holds NaN in the background, which no computation reads. Arrays whose shapes do not
+    fit the mask are left for ``validate_scene`` to refuse."""
+    mask = arrays["mask"]
+    cleaned = {}
+    for key in ("normal", "depth"):
+        value = arrays.get(key)
+        if value is None or value.dtype.kind != "f" or mask.dtype != np.bool_ or value.shape[:2] != mask.shape:
+            continue
+        outside = ~np.isfinite(value) & ~(mask if value.ndim == 2 else mask[..., None])
+        if outside.any():
+            cleaned[key] = np.where(outside, 0, value).astype(value.dtype)
+    return cleaned
 
 
 def save_scene(scene: Scene, path: str | Path, compressed: bool = True) -> None:
@@ -242,7 +277,7 @@ def rig_for_scene(rig: Rig, scene: Scene) -> Rig:
     """
     rows, cols = scene.light_positions.shape[:2]
     if (rows, cols) != (rig.rows, rig.cols):
-        raise InputError(f"scene {scene.name} has a {rows} x {cols} light grid but rig {rig.name} is {rig.rows} x {rig.cols}; "
+        raise InputError(f"{scene.label} has a {rows} x {cols} light grid but rig {rig.name} is {rig.rows} x {rig.cols}; "
                          "a scene made for another rig needs that rig (--rig, or `rig` in a config)")
     camera = Camera(K_cam=tuple(tuple(float(v) for v in row) for row in scene.K_cam), height=scene.height, width=scene.width,
                     exposure_ms=rig.camera.exposure_ms)
@@ -255,13 +290,13 @@ def rig_for_scene(rig: Rig, scene: Scene) -> Rig:
     shift = float(np.linalg.norm(lights - rig.light_positions, axis=-1).max())
     millimetre_shift = float(np.linalg.norm(lights / 1000.0 - rig.light_positions, axis=-1).max())
     if millimetre_shift <= MILLIMETRE_MATCH_M and millimetre_shift < shift:
-        raise InputError(f"scene {scene.name}: its light positions are rig {rig.name}'s in millimetres; scene files use metres (divide by 1000)")
+        raise InputError(f"{scene.label}: its light positions are rig {rig.name}'s in millimetres; scene files use metres (divide by 1000)")
     recorded = scene.meta.get("rig")
     if isinstance(recorded, str) and recorded != rig.name:
         warn_once(f"scenes made for rig {recorded!r} are used with rig {rig.name!r}: their own light positions and "
                   "intrinsics, its display and sensor", stacklevel=2)  # one line for all the scenes of that rig
     elif shift > LIGHT_MISMATCH_M:
-        warnings.warn(f"scene {scene.name}: its light positions differ from rig {rig.name}'s by up to {shift:.3f} m; "
-                      "the scene's own light positions are used, with the rig's display and sensor", DisplexWarning, stacklevel=2)
+        warn_once(f"{scene.label}: its light positions differ from rig {rig.name}'s by up to {shift:.3f} m; "
+                  "the scene's own light positions are used, with the rig's display and sensor", stacklevel=2)
     return rig.replace(light_positions=lights, camera=camera)
 

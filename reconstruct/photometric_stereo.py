@@ -51,6 +51,22 @@ from reconstruct.pixel_solve import CONDITION_CAP, Moments, alternate, implicit_
 from reconstruct.shadow_search import restarted_search
 
 FLAG_NAMES = ("dark", "saturated", "ill_conditioned", "back_facing", "bad_geometry", "not_converged", "poor_fit", "grazing")
+INVALIDATING_FLAGS = {
+    "dark": "too dark",
+    "ill_conditioned": "too few or too similar captures",
+    "back_facing": "the fit faces away from the camera",
+    "bad_geometry": "the point lies behind the camera or within min_distance of a superpixel (depth in metres?)",
+}
+"""The flags that make a pixel invalid, with what each means (for messages)."""
+
+
+def invalid_causes(flag_shares: dict[str, float]) -> str:
+    """'bad_geometry (the point lies ...) on 100% of the pixels; ...': the invalidating flags
+    raised, largest share first, from a dict of flag name -> share of pixels in [0, 1]."""
+    raised = sorted(((share, name) for name, share in flag_shares.items() if name in INVALIDATING_FLAGS and share > 0), reverse=True)
+    return "; ".join(f"{name} ({INVALIDATING_FLAGS[name]}) on {100 * share:.3g}% of the pixels" for share, name in raised) or "no flag raised"
+
+
 MAX_PIXELS_PER_SOLVE = 1 << 19
 """Pixels solved together (a full 512 x 612 image is one solve; larger inputs are split)."""
 
@@ -235,7 +251,7 @@ def finalise(normal, albedo, condition, residual, flags: dict, field_: LightFiel
     flags["ill_conditioned"] = condition > config.condition_threshold
     flags["back_facing"] = facing <= 0
     flags["bad_geometry"] = field_.bad
-    valid = ~(flags["dark"] | flags["ill_conditioned"] | flags["back_facing"] | flags["bad_geometry"])
+    valid = ~torch.stack([flags[name] for name in INVALIDATING_FLAGS]).any(0)
     # Marks on estimates that are kept: an invalid pixel's normal is replaced below anyway.
     flags["poor_fit"] = valid & (residual > config.residual_threshold)
     flags["grazing"] = valid & (facing < config.grazing_cos)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from capture_sim.errors import MAX_THREADS, InputError
+from capture_sim.errors import MAX_THREADS, DisplexWarning, InputError
 from capture_sim.rig import load_rig
 from capture_sim.scene import load_scene, save_scene
 from capture_sim.synth import synthesize_scene
@@ -151,7 +151,7 @@ def test_scene_black_inside_its_mask_is_reported(tmp_path, scene_file, capsys):
             capsys.readouterr()
             assert run([*command, str(scene)]) == 0, name
             err = capsys.readouterr().err
-            assert ("displex: warning: scene blob-svbrdf-s3 is black inside its mask" in err) == warned, (name, err)
+            assert (f"displex: warning: scene blob-svbrdf-s3 ({scene}) is black inside its mask" in err) == warned, (name, err)
 
 
 def test_scene_lights_far_from_the_rig_are_reported(tmp_path, scene_file, capsys):
@@ -870,3 +870,49 @@ def test_inputs_made_for_another_rig_need_rig(tmp_path, scene_file, capsys):
     # A grid mismatch names the rig and says what to do.
     assert run(["export", "--patterns", str(patterns), "--rig", "panel-32in-5x10", "--out", str(tmp_path / "frames2")]) == 2
     assert "rig panel-32in-5x10's display grid is 5 x 10" in capsys.readouterr().err
+
+
+def test_own_scene_files_from_the_user_scenario(tmp_path, scene_file, capsys, monkeypatch):
+    """From a user bringing their own scene files: a misspelt optional array is warned, not silently
+    dropped; NaN in the background of the ground truth is accepted (as the DIR loader does) and
+    inside the mask counted; a depth at or below 1 mm is refused on loading; every error names the
+    file; evaluate refuses a scene without normals before solving any; the all-invalid warning
+    names the flags raised."""
+    with np.load(scene_file) as data:
+        arrays = dict(data)
+    meta = json.loads(str(arrays["meta"]))
+    typo = {**{k: v for k, v in arrays.items() if k != "depth"}, "Depth": arrays["depth"]}
+    np.savez(tmp_path / "typo.npz", **typo)
+    with pytest.warns(DisplexWarning, match="unknown arrays 'Depth' are ignored"):
+        load_scene(tmp_path / "typo.npz")
+    background = ~arrays["mask"]
+    normal, depth = arrays["normal"].copy(), arrays["depth"].copy()
+    normal[background], depth[background] = np.nan, np.nan
+    np.savez(tmp_path / "nan_background.npz", **{**arrays, "normal": normal, "depth": depth})
+    loaded = load_scene(tmp_path / "nan_background.npz")
+    assert np.isfinite(loaded.normal).all() and np.isfinite(loaded.depth).all()
+    assert np.array_equal(loaded.normal[arrays["mask"]], arrays["normal"][arrays["mask"]])
+    inside = normal.copy()
+    inside[np.argwhere(arrays["mask"])[0][0], np.argwhere(arrays["mask"])[0][1]] = np.nan
+    np.savez(tmp_path / "nan_inside.npz", **{**arrays, "normal": inside})
+    np.savez(tmp_path / "tiny_depth.npz", **{**arrays, "depth": np.full_like(arrays["depth"], 1e-9)})
+    np.savez(tmp_path / "no_normals.npz", **{k: v for k, v in arrays.items() if k != "normal"})
+    black = tmp_path / "black.npy"
+    np.save(black, np.zeros((4, *arrays["light_positions"].shape[:2], 3), dtype=np.float32))
+    evaluate = ["evaluate", "--patterns", "olat", "--method", "woodham", "--scenes"]
+    cases = [
+        ("nan_inside.npz", f"scene {meta['name']} ({tmp_path / 'nan_inside.npz'}): normal has NaN or infinite values at 1 pixels inside the mask"),
+        ("tiny_depth.npz", "depth must exceed 1 mm inside the mask, got 1e-09 (metres?)"),
+    ]
+    for name, message in cases:
+        capsys.readouterr()
+        assert run(evaluate + [str(tmp_path / name)]) == 2
+        assert message in capsys.readouterr().err
+    solved = []
+    monkeypatch.setattr("train.evaluate_command.evaluate_scene", lambda *args: solved.append(args))
+    assert run(evaluate + [str(scene_file), str(tmp_path / "no_normals.npz")]) == 2
+    assert f"({tmp_path / 'no_normals.npz'}) has no ground-truth normals" in capsys.readouterr().err and not solved
+    monkeypatch.undo()
+    assert run(["evaluate", "--patterns", str(black), "--scenes", str(scene_file)]) == 0
+    # Black patterns still show the backlight, which auto exposure lifts: four identical captures.
+    assert "flagged invalid (ill_conditioned (too few or too similar captures) on 100% of the pixels)" in capsys.readouterr().err

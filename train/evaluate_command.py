@@ -14,10 +14,12 @@ from tqdm import tqdm
 from capture_sim.atomic import refuse_overwriting, save_npy, separate_json, staged_files, write_json
 from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import DEFAULT_RIG, load_rig, rig_file
+from capture_sim.scene import rig_for_scene
 from patterns.io import check_patterns_match_rig, load_patterns
+from reconstruct.photometric_stereo import invalid_causes
 from train.evaluate import EvalSettings, error_map, evaluate_scene, masked_map
 from train.figures import image_grid, normal_panel, save_figure
-from train.scene_pixels import scene_pixels
+from train.scene_pixels import require_ground_truth, scene_pixels
 from train.scene_sets import resolve_scenes
 from train.simulate_command import parse_exposure
 
@@ -59,6 +61,9 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
         patterns = torch.as_tensor(values)
     settings = EvalSettings(method=config.method, noise_scale=0.0 if config.noise == "off" else 1.0, exposure=parse_exposure(str(config.exposure), rig), seed=config.seed)
     scenes = resolve_scenes(config.scenes, "test", rig)
+    for scene in scenes:  # a later scene's refusal must not wait for the earlier scenes' solves
+        require_ground_truth(scene)
+        rig_for_scene(rig, scene)
     files = [Path(scene.meta.get("file", scene.name)) for scene in scenes]
     if config.out is not None:
         _refuse_clashing_outputs(files)
@@ -121,8 +126,8 @@ def _evaluate_scenes(config: EvaluateConfig, scenes, files, rig, patterns, setti
         rows.append(evaluation.metrics)
         if evaluation.metrics["invalid_fraction"] >= 1.0:
             # The MAE of such a scene measures the default normal, not a reconstruction.
-            warnings.warn(f"every pixel of {evaluation.metrics['name']} is flagged invalid (too few, identical, dark or "
-                          "saturated captures): its MAE says nothing about the patterns", DisplexWarning, stacklevel=3)
+            warnings.warn(f"every pixel of {evaluation.metrics['name']} is flagged invalid ({invalid_causes(evaluation.metrics['flagged'])}): "
+                          "its MAE says nothing about the patterns", DisplexWarning, stacklevel=3)
         if out is not None:
             panels.append(_write_scene_outputs(out, file.stem, pixels, evaluation, settings.ps.residual_threshold))
     document = {

@@ -52,8 +52,14 @@ def warn_if_black_inside_mask(scene: Scene) -> None:
     probably not meant (a wrong mask, a failed capture, a purely specular scene stripped of its
     specular stack), as its captures hold nothing but noise. Stops at the first lit light."""
     if not any(np.any(image[scene.mask]) for image in scene.olat):
-        warnings.warn(f"scene {scene.name} is black inside its mask (its OLAT stack is zero there): its captures hold "
+        warnings.warn(f"{scene.label} is black inside its mask (its OLAT stack is zero there): its captures hold "
                       "nothing but noise, so its errors say nothing about the patterns", DisplexWarning, stacklevel=3)
+
+
+def require_ground_truth(scene: Scene) -> None:
+    """``InputError`` naming the scene and its file if it has no ground-truth normals."""
+    if scene.normal is None:
+        raise InputError(f"{scene.label} has no ground-truth normals, which this command needs")
 
 
 def scene_pixels(scene: Scene, rig: Rig, require_normals: bool = False) -> ScenePixels:
@@ -61,10 +67,10 @@ def scene_pixels(scene: Scene, rig: Rig, require_normals: bool = False) -> Scene
 
     A scene black inside its mask is reported (``warn_if_black_inside_mask``).
     """
-    if require_normals and scene.normal is None:
-        raise InputError(f"scene {scene.name} has no ground-truth normals, which this command needs")
+    if require_normals:
+        require_ground_truth(scene)
     if not scene.mask.any():
-        raise InputError(f"scene {scene.name} has an empty mask")
+        raise InputError(f"{scene.label} has an empty mask")
     scene_rig = rig_for_scene(rig, scene)
     warn_if_black_inside_mask(scene)
     transport = light_transport(scene.olat, scene.mask)
@@ -74,7 +80,7 @@ def scene_pixels(scene: Scene, rig: Rig, require_normals: bool = False) -> Scene
     try:
         scene_rig.falloff.check(torch.cdist(points, scene_rig.lights()))
     except InputError as err:
-        raise InputError(f"scene {scene.name}: {err}") from None
+        raise InputError(f"{scene.label}: {err}") from None
     return ScenePixels(scene.name, scene_rig, transport, points, normal, np.asarray(scene.mask))
 
 

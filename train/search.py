@@ -30,6 +30,7 @@ import io
 import math
 import time
 import warnings
+from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -44,7 +45,7 @@ from capture_sim.errors import DisplexWarning, InputError, check_seed
 from capture_sim.rig import DEFAULT_RIG, check_noise_scale, load_rig
 from patterns.families import PRESETS, check_sharpness, default_vector, get_family
 from patterns.io import save_patterns
-from reconstruct.photometric_stereo import PSConfig, solve_ps
+from reconstruct.photometric_stereo import PSConfig, invalid_causes, solve_ps
 from train.capture import capture_scene
 from train.config_io import config_to_dict
 from train.learn import check_logdir, config_record_path, normal_loss, summary_writer
@@ -408,6 +409,8 @@ class PatternObjective:
         self.columns = fixed_pixel_subsets(scenes, pixels_per_scene, seed)
         self.invalid_fractions: list[float] = []
         """Per scene, the share of pixels the solver flagged invalid at the latest evaluation."""
+        self.flag_shares: dict[str, float] = {}
+        """Per solver flag, the share of the search pixels carrying it at the latest evaluation."""
 
     def patterns(self, vector: np.ndarray | torch.Tensor) -> torch.Tensor:
         """(M, R, C, 3) float32 patterns of a (P,) parameter vector (differentiable in a tensor)."""
@@ -416,7 +419,7 @@ class PatternObjective:
 
     def value(self, patterns: torch.Tensor) -> torch.Tensor:
         """Scalar mean over scenes of the mean angle (degrees) over each scene's pixel subset."""
-        losses, invalid = [], []
+        losses, invalid, flagged = [], [], defaultdict(list)
         for index, (pixels, columns) in enumerate(zip(self.scenes, self.columns)):
             noise = torch.Generator().manual_seed(self.seed * 1000 + index)
             capture = capture_scene(pixels, patterns, self.noise_scale, "auto", noise, columns)
@@ -425,7 +428,10 @@ class PatternObjective:
             result = solve_ps(capture.captures, capture.emission, points, pixels.lights(), pixels.rig.falloff, self.ps_config)
             losses.append(normal_loss(result.normal, truth, "angular"))
             invalid.append(float((~result.valid).float().mean()) if result.valid.numel() else 1.0)
+            for name, flag in result.flags.items():
+                flagged[name].append(flag.detach())
         self.invalid_fractions = invalid
+        self.flag_shares = {name: float(torch.cat(flags).float().mean()) if sum(f.numel() for f in flags) else 0.0 for name, flags in flagged.items()}
         return torch.rad2deg(torch.stack(losses).mean())
 
     def __call__(self, vector: np.ndarray, need_gradient: bool) -> tuple[float, np.ndarray | None]:
@@ -590,7 +596,7 @@ def _search(config: SearchConfig, out: Path, logdir: Path | None, progress: bool
     def on_evaluation(index, x, value, best):
         if index == 0 and objective.invalid_fractions and min(objective.invalid_fractions) == 1.0:
             warnings.warn(f"the start patterns of {config.family} (M = {config.num_patterns}) leave every pixel of every search "
-                          "scene invalid (too few, identical, dark or saturated captures): the MAE cannot guide the search",
+                          f"scene invalid ({invalid_causes(objective.flag_shares)}): the MAE cannot guide the search",
                           DisplexWarning, stacklevel=2)
         seen.append((x, value))
         bar.update(1)
