@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture_sim.errors import InputError
+from capture_sim.errors import InputError, warn_once
 
 
 def refuse_overwriting(outputs, inputs) -> None:
@@ -133,6 +133,10 @@ def atomic_path(path: str | Path, suffix: str = "", sync: bool = False):
             os.unlink(tmp)
 
 
+STAGING_PREFIX = ".staging."
+"""Name prefix of the temporary folders of ``staged_files``."""
+
+
 @contextmanager
 def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list | None = None, before_moves=None):
     """Yield a temporary folder inside ``folder`` (created if needed) for the files of one command.
@@ -155,9 +159,14 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list 
     folder = Path(folder)
     check_folder_place(folder, f"cannot write into {folder}")
     created = _missing_folders(folder)
+    # A killed command (SIGKILL, power loss) cannot clean up; one still running may be writing.
+    leftovers = sorted(path.name for path in folder.glob(f"{STAGING_PREFIX}*") if path.is_dir()) if folder.is_dir() else []
+    if leftovers:
+        warn_once(f"{folder} holds {len(leftovers)} staging folder(s) of an interrupted command ({', '.join(leftovers[:3])}"
+                  f"{', ...' if len(leftovers) > 3 else ''}): delete them unless a displex command is writing into {folder} now")
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=".staging.", dir=folder))
+        staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=folder))
     except OSError as err:
         raise InputError(f"cannot write into {folder}: {err.strerror or err}") from None
     try:

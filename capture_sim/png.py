@@ -108,14 +108,21 @@ def decode_png(data: bytes, name: str = "PNG") -> np.ndarray:
     return image[:, :, 0].copy() if channels == 1 else image.copy()
 
 
-def png_format(path: str | Path) -> tuple[int, int] | None:
-    """(bit depth, colour type) from the header of the file at ``path``, or None if it is not a
-    PNG (read from its first 26 bytes only)."""
+def png_header(path: str | Path) -> tuple[int, int, int, int] | None:
+    """(height, width, bit depth, colour type) from the header of the file at ``path``, or None if
+    it is not a PNG (read from its first 26 bytes only)."""
     with open(path, "rb") as file:
         start = file.read(len(_SIGNATURE) + 18)
     if len(start) < len(_SIGNATURE) + 18 or not start.startswith(_SIGNATURE) or start[12:16] != b"IHDR":
         return None
-    return start[24], start[25]
+    width, height = struct.unpack(">II", start[16:24])
+    return height, width, start[24], start[25]
+
+
+def png_format(path: str | Path) -> tuple[int, int] | None:
+    """(bit depth, colour type) from the header of the file at ``path``, or None if it is not a PNG."""
+    header = png_header(path)
+    return None if header is None else header[2:]
 
 
 def write_png(path: str | Path, image: np.ndarray, level: int = 2) -> None:

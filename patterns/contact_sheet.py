@@ -12,7 +12,8 @@ from patterns.io import validate_patterns
 
 _CAPTION = (
     "Display set values P in [0, 1] before the display gamma, in pattern grid order: row 0 at the top, "
-    "column c growing with camera x (exported frames may mirror columns: see columns_mirrored in the manifest)."
+    "column 0 at the left (on the preset rigs, column c grows with camera x; exported frames may mirror "
+    "columns: see columns_mirrored in the manifest)."
 )
 
 

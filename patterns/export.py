@@ -23,8 +23,8 @@ import numpy as np
 
 from capture_sim.atomic import staged_files, write_bytes, write_json
 from capture_sim.errors import InputError, check_array, is_whole_number
-from capture_sim.png import encode_png, read_png
-from capture_sim.rig import Rig, panel_size
+from capture_sim.png import encode_png, png_header, read_png
+from capture_sim.rig import Rig, available_rigs, load_rig, panel_size
 from patterns.contact_sheet import save_contact_sheet
 from patterns.io import check_patterns_match_rig, validate_patterns
 
@@ -71,8 +71,7 @@ def render_frame(
     Returns:
         (height, width, 3) uint8 or uint16 frame: round(P * (2**bit_depth - 1)) per block.
     """
-    if bit_depth not in _BIT_DEPTHS:
-        raise InputError(f"bit depth must be 8 or 16, got {bit_depth}")
+    _check_bit_depth(bit_depth, "bit depth")
     check_array("pattern", pattern, ("R", "C", 3), value_range=(0.0, 1.0))
     rows, cols, _ = pattern.shape
     height, width = panel_size(panel_pixels)
@@ -141,8 +140,7 @@ def export_frames(
     """
     values = validate_patterns(patterns)
     check_patterns_match_rig(values, rig.rows, rig.cols, rig.name)
-    if not is_whole_number(bit_depth) or bit_depth not in _BIT_DEPTHS:
-        raise InputError(f"bit depth must be 8 or 16, got {bit_depth!r}")
+    _check_bit_depth(bit_depth, "bit depth")
     if not is_whole_number(compression_level, 0, 9):
         raise InputError(f"PNG compression level must be a whole number 0..9, got {compression_level!r}")
     if rig.panel_pixels is None:
@@ -189,6 +187,12 @@ def export_frames(
     return manifest
 
 
+def frame_digits(num_patterns: int, num_olat_frames: int) -> int:
+    """Digits of the frame numbers (``pattern_000.png``): three, or as many as 1000 frames or more
+    of one kind need, so that the names sort in capture order."""
+    return max(3, len(str(num_patterns - 1)), len(str(num_olat_frames - 1)))
+
+
 def _write_export(values, rig: Rig, folder: Path, bit_depth: int, include_olat: bool, name: str, compression_level: int,
                   panel: tuple[int, int], row_bounds, col_bounds, mirrored: bool) -> dict:
     """Write the frames, the contact sheet and the manifest of ``export_frames`` into ``folder``."""
@@ -199,8 +203,9 @@ def _write_export(values, rig: Rig, folder: Path, bit_depth: int, include_olat: 
         write_bytes(folder / file_name, data)
         frames.append({"file": file_name, **description, "sha256": hashlib.sha256(data).hexdigest()})
 
+    digits = frame_digits(len(values), rig.num_lights if include_olat else 0)
     for m, pattern in enumerate(values):
-        write_frame(f"pattern_{m:03d}.png", pattern, kind="pattern", index=m)
+        write_frame(f"pattern_{m:0{digits}d}.png", pattern, kind="pattern", index=m)
     if include_olat:
         grid = (rig.rows, rig.cols, 3)
         write_frame("black.png", np.zeros(grid, np.float32), kind="black")
@@ -209,7 +214,7 @@ def _write_export(values, rig: Rig, folder: Path, bit_depth: int, include_olat: 
             row, col = divmod(light, rig.cols)
             one_lit = np.zeros(grid, np.float32)
             one_lit[row, col] = 1.0
-            write_frame(f"olat_{light:03d}.png", one_lit, kind="olat", light=light, row=row, col=col)
+            write_frame(f"olat_{light:0{digits}d}.png", one_lit, kind="olat", light=light, row=row, col=col)
 
     save_contact_sheet(folder / CONTACT_SHEET_NAME, values, f"{len(values)} patterns for rig {name} (pattern grid order)")
     manifest = {
@@ -238,9 +243,10 @@ def _write_export(values, rig: Rig, folder: Path, bit_depth: int, include_olat: 
 def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.ndarray, dict]:
     """Recover a pattern set from exported frames.
 
-    Reads ``manifest.json``, verifies the SHA-256 of every frame it lists (and that the folder
-    holds no other frame files), reads the pattern frames
-    and averages the central half of every superpixel block (undoing the column mirroring).
+    Reads ``manifest.json``, verifies the SHA-256, size and bit depth of every frame it lists (and
+    that the folder holds no other frame files), reads the pattern frames and averages the central
+    half of every superpixel block (undoing the column mirroring). The black, white and OLAT
+    frames' contents are checked by their SHA-256 only.
 
     Args:
         frames_dir: folder written by ``export_frames``.
@@ -258,14 +264,19 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
     rows, cols = manifest["rows"], manifest["cols"]
     height, width = manifest["panel_pixels"]
     bit_depth = manifest["bit_depth"]
-    if bit_depth not in _BIT_DEPTHS:
-        raise InputError(f"{frames_dir}: manifest bit_depth must be 8 or 16, got {bit_depth}")
+    _check_bit_depth(bit_depth, f"{frames_dir}: manifest bit_depth")
+    _check_rig_name(manifest, frames_dir)
     for frame in manifest["frames"]:
         path = frames_dir / frame["file"]
         if not path.is_file():
             raise InputError(f"{frames_dir}: frame {frame['file']} listed in the manifest is missing")
         if hashlib.sha256(path.read_bytes()).hexdigest() != frame.get("sha256"):
             raise InputError(f"{frames_dir}: frame {frame['file']} does not match its SHA-256 in the manifest")
+        # Every frame the rig plays, not only the pattern frames read below (a header is 26 bytes).
+        if png_header(path) != (height, width, bit_depth, _RGB):
+            found = png_header(path)
+            shown = "not a PNG" if found is None else f"{found[0]} x {found[1]} at {found[2]} bits, colour type {found[3]}"
+            raise InputError(f"{frames_dir}: frame {frame['file']} is {shown}; the manifest says {height} x {width} RGB at {bit_depth} bits")
     listed_files = {frame["file"] for frame in manifest["frames"]}
     unlisted = sorted(path.name for glob in FRAME_GLOBS for path in frames_dir.glob(glob) if path.name not in listed_files)
     if unlisted:  # a rig that plays the folder's frames would show them too
@@ -303,6 +314,26 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
     if rig is not None:
         check_patterns_match_rig(patterns, rig.rows, rig.cols, rig.name)
     return patterns, manifest
+
+
+_RGB = 2
+"""PNG colour type of the frames (truecolour, no alpha)."""
+
+
+def _check_bit_depth(bit_depth, what: str) -> None:
+    if not is_whole_number(bit_depth) or bit_depth not in _BIT_DEPTHS:
+        raise InputError(f"{what} must be 8 or 16, got {bit_depth!r}")
+
+
+def _check_rig_name(manifest: dict, frames_dir: Path) -> None:
+    """A manifest naming a rig preset must restate that preset's grid: the name goes into the
+    imported pattern file, and a later export would otherwise refuse it for a grid it never had."""
+    name = manifest.get("rig")
+    if isinstance(name, str) and name in available_rigs():
+        preset = load_rig(name)
+        if (preset.rows, preset.cols) != (manifest["rows"], manifest["cols"]):
+            raise InputError(f"{frames_dir}: the manifest names rig {name}, a {preset.rows} x {preset.cols} grid, "
+                             f"but lists a {manifest['rows']} x {manifest['cols']} grid")
 
 
 def _read_manifest(frames_dir: Path) -> dict:

@@ -8,7 +8,7 @@ import pytest
 from capture_sim.errors import InputError
 from capture_sim.png import read_png, write_png
 from capture_sim.rig import available_rigs, load_rig
-from patterns.export import columns_mirrored, export_frames, import_frames, render_frame, superpixel_boundaries
+from patterns.export import columns_mirrored, export_frames, frame_digits, import_frames, render_frame, superpixel_boundaries
 from patterns.families import make_patterns
 
 
@@ -396,3 +396,47 @@ def test_contact_sheet_of_one_pattern_has_room_for_its_title():
 
     fig = contact_sheet_figure(np.zeros((1, 9, 16, 3), np.float32), "1 patterns for rig dir-odyssey-ark (pattern grid order)")
     assert fig.get_size_inches()[0] >= 6.4  # a 3.2-inch sheet cut the title off on both sides
+
+
+def test_export_import_fixes_from_the_rig_builder_run(tmp_path, small_rig):
+    """Every listed frame's size and bit depth is checked, OLAT frames included; names sort in
+    capture order past 999 frames; a manifest naming a preset of another grid is refused; bit
+    depths must be whole numbers and are quoted as found; a killed command's staging folder is
+    reported on the next write into its folder."""
+    import warnings
+
+    from capture_sim.atomic import staged_files
+    from capture_sim.errors import DisplexWarning
+
+    export_frames(_patterns(small_rig, 2), small_rig, tmp_path / "olat", include_olat=True)
+    manifest_path = tmp_path / "olat" / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    small = np.zeros((9, 16, 3), np.uint8)  # a forged OLAT frame, its checksum updated to match
+    write_png(tmp_path / "olat" / "olat_003.png", small)
+    entry = next(frame for frame in manifest["frames"] if frame["file"] == "olat_003.png")
+    entry["sha256"] = hashlib.sha256((tmp_path / "olat" / "olat_003.png").read_bytes()).hexdigest()
+    manifest_path.write_text(json.dumps(manifest))
+    with pytest.raises(InputError, match="olat_003.png is 9 x 16 at 8 bits.*90 x 160 RGB at 8 bits"):
+        import_frames(tmp_path / "olat")
+
+    assert [frame_digits(m, k) for m, k in ((2, 0), (1000, 144), (1001, 0), (4, 1200), (12000, 0))] == [3, 3, 4, 4, 5]
+    names = [f"pattern_{m:0{frame_digits(1001, 0)}d}.png" for m in range(1001)]
+    assert names == sorted(names)
+
+    export_frames(_patterns(small_rig, 2), small_rig, tmp_path / "renamed")
+    manifest_path = tmp_path / "renamed" / "manifest.json"
+    manifest_path.write_text(manifest_path.read_text().replace('"rig": "dir-odyssey-ark"', '"rig": "panel-32in-5x10"'))
+    with pytest.raises(InputError, match="names rig panel-32in-5x10, a 5 x 10 grid, but lists a 9 x 16 grid"):
+        import_frames(tmp_path / "renamed")
+    manifest_path.write_text(manifest_path.read_text().replace('"bit_depth": 8', '"bit_depth": "8"'))
+    with pytest.raises(InputError, match="bit_depth must be 8 or 16, got '8'"):
+        import_frames(tmp_path / "renamed")
+    with pytest.raises(InputError, match="bit depth must be 8 or 16, got 8.0"):
+        render_frame(_patterns(small_rig, 1)[0], (90, 160), bit_depth=8.0)
+
+    (tmp_path / "renamed" / ".staging.killed").mkdir()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with staged_files(tmp_path / "renamed"):
+            pass
+    assert any(issubclass(w.category, DisplexWarning) and ".staging.killed" in str(w.message) for w in caught)

@@ -674,7 +674,7 @@ def _write_charts(results: dict, summary: dict, pattern_sets: dict, into: Path) 
         written.add("specular_free")
     entries = pattern_entries(results, rows, pattern_sets)
     if entries:
-        save_figure(chart_patterns(entries, "Each row: one pattern set, patterns left to right; superpixel grid as the camera sees it (column 0 at camera-left: the display, facing the object, shows it mirrored left-right)."), into / CHARTS["patterns"])
+        save_figure(chart_patterns(entries, "Each row: one pattern set, patterns left to right; superpixel grid in pattern order (on the preset rigs column 0 is at camera-left, and the display, facing the object, shows it mirrored left-right)."), into / CHARTS["patterns"])
         written.add("patterns")
     return written
 
