@@ -14,6 +14,7 @@ from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import load_rig
 from capture_sim.synth import write_scene_set
 from patterns.families import make_patterns
+from patterns.io import load_patterns
 from train.compare import first_with_same_patterns, run_compare, run_demo
 from train.compare_config import (
     DEFAULT_EXPOSURE_MS,
@@ -438,6 +439,15 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     with pytest.raises(InputError, match=r"\[\[external\]\] mine: .* lies in .*patterns, whose files compare rewrites"):
         run_compare(inside, tmp_path, progress=False)
     assert {path: path.read_bytes() for path in (tmp_path / "patterns").glob("*.npz")} == before
+    # A stop between a learning run's pattern file and its run record leaves a run to finish
+    # again (from its checkpoint, to the same patterns), not a refusal blaming the rig file.
+    learned_file = tmp_path / "patterns" / "learned_M2_seed0.npz"
+    learned_values = load_patterns(learned_file)[0]
+    learned_file.with_name("learned_M2_seed0.run.json").unlink()
+    monkeypatch.undo()
+    run_compare(config, tmp_path, progress=False)
+    assert learned_file.with_name("learned_M2_seed0.run.json").is_file()
+    assert np.array_equal(load_patterns(learned_file)[0], learned_values)
 
 
 def test_test_scenes_listed_twice_are_refused_and_training_scenes_among_them_warned(scenes, tmp_path):

@@ -54,11 +54,23 @@ class Method:
     specular_free: dict | None = None
 
 
+def _finished(path: Path) -> bool:
+    """Whether the run that writes ``path`` finished: its run record, written after the pattern
+    file, exists. A stop between the two leaves a pattern file the run must write again (a
+    learning run resumes from its last checkpoint, a search starts over)."""
+    return path.exists() and _record_path(path).exists()
+
+
+def _record_path(path: Path) -> Path:
+    return path.with_name(path.stem + ".run.json")
+
+
 def _reusable(path: Path, run_config, what: str) -> dict | None:
-    """Meta and patterns of an existing output made with the same config (a TrainConfig or
-    SearchConfig) from the same input files; None if absent. Another config, or input files that
-    changed since (``train.learn.input_fingerprints``: scene, init pattern and rig files), raise."""
-    if not path.exists():
+    """Meta and patterns of a finished run's output (``_finished``) made with the same config (a
+    TrainConfig or SearchConfig) from the same input files; None if absent or unfinished. Another
+    config, or input files that changed since (``train.learn.input_fingerprints``: scene, init
+    pattern and rig files), raise."""
+    if not _finished(path):
         return None
     reason = _stale_reason(path, run_config)
     if reason is not None:
@@ -81,7 +93,7 @@ def _stale_reason(path: Path, run_config) -> str | None:
 
 
 def _run_record(path: Path) -> dict:
-    record = path.with_name(path.stem + ".run.json")
+    record = _record_path(path)
     return json.loads(record.read_text()) if record.exists() else {}
 
 
@@ -106,7 +118,7 @@ def _check_reusable_runs(config: CompareConfig, pattern_dir: Path) -> None:
     before it. Every such output is named in one message (after a rig file changed, all are)."""
     runs = [_learned_output(config, count, seed, rerender, pattern_dir)[1:] for count, seed, rerender in _learning_runs(config)]
     runs += [(pattern_dir / f"{run.name}.npz", config.search_config(run)) for run in config.search]
-    stale = [(path, reason) for path, run_config in runs if path.exists() and (reason := _stale_reason(path, run_config)) is not None]
+    stale = [(path, reason) for path, run_config in runs if _finished(path) and (reason := _stale_reason(path, run_config)) is not None]
     if len(stale) == 1:
         raise InputError(f"{stale[0][0]} holds patterns {stale[0][1]}; delete it or choose another output folder")
     if stale:
@@ -126,7 +138,7 @@ def learned_method(config: CompareConfig, num_patterns: int, seed: int, pattern_
         result = train_patterns(train_config, path, logdir=None if logdir is None else logdir / method_id, progress=progress,
                                 checkpoint_mode="resume_or_fresh")
         seconds = result.seconds  # includes the sessions of a resumed run
-        write_json(path.with_name(path.stem + ".run.json"), {"seconds": seconds, "steps": train_config.steps, "input_files": input_fingerprints(train_config)})
+        write_json(_record_path(path), {"seconds": seconds, "steps": train_config.steps, "input_files": input_fingerprints(train_config)})
         patterns, val_history = result.patterns, result.val_history
     else:
         seconds = _run_record(path).get("seconds")
@@ -147,7 +159,7 @@ def searched_method(config: CompareConfig, run: SearchRun, pattern_dir: Path, pr
     if existing is None:
         meta = run_search(search_config, path, logdir=None if logdir is None else logdir / run.name, progress=progress)
         patterns = load_patterns(path)[0]
-        write_json(path.with_name(path.stem + ".run.json"), {"seconds": meta["seconds"], "input_files": input_fingerprints(search_config)})
+        write_json(_record_path(path), {"seconds": meta["seconds"], "input_files": input_fingerprints(search_config)})
     else:
         meta, patterns = existing["meta"], existing["patterns"]
     info = {key: meta[key] for key in ("start_mae", "best_mae", "evaluations", "stop_reason", "sharpness")}
