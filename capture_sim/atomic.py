@@ -133,6 +133,30 @@ def atomic_path(path: str | Path, suffix: str = "", sync: bool = False):
             os.unlink(tmp)
 
 
+@contextmanager
+def signals_held():
+    """Hold SIGINT and SIGTERM back for the block (a few renames), then raise them again: an
+    interrupt arrives after the block, never in its middle. Python handlers run in the main thread
+    only, so elsewhere the block runs as is. (Blocking the signals with ``pthread_sigmask`` is not
+    enough: the kernel hands a process's signal to any thread that does not block it, torch's
+    included, and Python's handler then interrupts the main thread all the same.)"""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pending: list[int] = []
+    previous = {number: signal.signal(number, lambda received, _frame: pending.append(received)) for number in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+        for number in dict.fromkeys(pending):
+            signal.raise_signal(number)
+
+
 STAGING_PREFIX = ".staging."
 """Name prefix of the temporary folders of ``staged_files``."""
 
@@ -178,18 +202,19 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list 
                 check_replaceable(path)
         if before_moves is not None:
             before_moves()
-        for name in last:
-            (folder / name).unlink(missing_ok=True)
 
         def move(relatives) -> None:
             for relative in relatives:
                 (folder / relative).parent.mkdir(parents=True, exist_ok=True)
                 os.replace(staging / relative, folder / relative)
 
-        move(relative for relative in files if relative.parts[0] not in last)
-        for path in obsolete or ():
-            Path(path).unlink(missing_ok=True)
-        move(relative for relative in files if relative.parts[0] in last)
+        with signals_held():  # Ctrl-C in the middle would leave a mixture of two runs
+            for name in last:
+                (folder / name).unlink(missing_ok=True)
+            move(relative for relative in files if relative.parts[0] not in last)
+            for path in obsolete or ():
+                Path(path).unlink(missing_ok=True)
+            move(relative for relative in files if relative.parts[0] in last)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         _remove_empty(created)
@@ -226,17 +251,24 @@ def exclusive_output(path: str | Path, command: str):
     lock_path = path.with_name(f".{path.name}.lock")
     check_replaceable(lock_path)
     created = _missing_folders(lock_path.parent)
-    try:
-        lock_path.parent.mkdir(parents=True, exist_ok=True)
-        handle = open(lock_path, "a")
-    except OSError as err:
-        _remove_empty(created)
-        raise InputError(f"cannot write {lock_path}: {err.strerror or err}") from None
-    with handle:
+    while True:
+        try:
+            lock_path.parent.mkdir(parents=True, exist_ok=True)
+            handle = open(lock_path, "a")
+        except OSError as err:
+            _remove_empty(created)
+            raise InputError(f"cannot write {lock_path}: {err.strerror or err}") from None
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
+            handle.close()
             raise InputError(f"another {command} is writing {path} right now; wait for it or choose another output") from None
+        if locks_current_file(handle, lock_path):
+            break
+        # The run that held it removed the file between our open and our lock: the lock is on a
+        # file nobody else will open, so a third run could lock a new one. Lock that one instead.
+        handle.close()
+    with handle:
         try:
             yield
         except BaseException:
@@ -244,6 +276,14 @@ def exclusive_output(path: str | Path, command: str):
             _remove_empty(created)  # e.g. a run refused after the lock: no empty output folder
             raise
         lock_path.unlink(missing_ok=True)
+
+
+def locks_current_file(handle, lock_path: Path) -> bool:
+    """Whether the open file ``handle`` is still the file at ``lock_path`` (not removed since)."""
+    try:
+        return os.stat(lock_path).st_ino == os.fstat(handle.fileno()).st_ino
+    except FileNotFoundError:
+        return False
 
 
 def write_bytes(path: str | Path, data: bytes) -> None:

@@ -384,3 +384,43 @@ def test_a_second_run_on_the_same_output_is_refused(tmp_path, scene_dirs):
         with exclusive_output(tmp_path / "new" / "folder" / ("a" * 247 + ".npz"), "training run"):
             pass
     assert not (tmp_path / "new").exists()
+
+
+def test_the_output_lock_and_the_final_moves_survive_races_and_interrupts(tmp_path, monkeypatch):
+    """A run that opened the lock file just before its holder removed it must not hold a lock on
+    the removed file (a third run could then lock a new one beside it); Ctrl-C during the moves of
+    staged outputs arrives after them."""
+    import os
+    import signal
+
+    from capture_sim.atomic import exclusive_output, locks_current_file, signals_held, staged_files
+
+    lock = tmp_path / ".a.npz.lock"
+    with exclusive_output(tmp_path / "a.npz", "training run"):
+        early = open(lock, "a")  # opened by a second run while the first holds the lock
+    assert not lock.exists() and not locks_current_file(early, lock)
+    lock.touch()
+    assert not locks_current_file(early, lock)  # a new file under the old name
+    early.close()
+    with open(lock, "a") as current:
+        assert locks_current_file(current, lock)
+
+    moved = []
+    with pytest.raises(KeyboardInterrupt):
+        with signals_held():
+            os.kill(os.getpid(), signal.SIGINT)
+            moved.append("after the interrupt was sent")
+    assert moved == ["after the interrupt was sent"]
+    # An interrupt during the moves of staged outputs: every file lands, then the interrupt.
+    replace = os.replace
+
+    def interrupted_replace(source, target):
+        replace(source, target)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr("capture_sim.atomic.os.replace", interrupted_replace)
+    with pytest.raises(KeyboardInterrupt):
+        with staged_files(tmp_path / "out") as staging:
+            (staging / "a.txt").write_text("a")
+            (staging / "b.txt").write_text("b")
+    assert sorted(path.name for path in (tmp_path / "out").iterdir()) == ["a.txt", "b.txt"]

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import atomic_path, check_folder_place, exclusive_output, write_json
+from capture_sim.atomic import atomic_path, check_folder_place, exclusive_output, staged_files, write_json
 from capture_sim.errors import InputError, check_seed, one_line
 from capture_sim.rig import DEFAULT_RIG, check_noise_scale, load_rig, rig_file, rig_source
 from capture_sim.scene import file_fingerprints, scene_paths
@@ -478,8 +478,11 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
         "val_mae_history": val_history,
         "final_train_loss": loss_value if math.isfinite(loss_value) else None,
     }
-    save_patterns(out, learned, meta)
-    write_json(config_record_path(out), resolved)
+    # The pattern file and its config record land together (the pattern file last): a stop
+    # between two separate writes left a new pattern file beside an earlier run's record.
+    with staged_files(out.parent, last=(out.name,)) as staging:
+        save_patterns(staging / out.name, learned, meta)
+        write_json(staging / config_record_path(out).name, resolved)
     return TrainResult(learned, val_history, loss_value, earlier_seconds + time.perf_counter() - began)
 
 
