@@ -335,7 +335,7 @@ def test_specular_free_summary_against_plain_computation():
 def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     config = tiny_config(scenes, rerender_counts=[2])
     results = run_compare(config, tmp_path, progress=False)
-    for key in ("config", "rig", "exposure_ms", "methods", "skipped", "summary", "timings", "test_scenes", "noise_scales"):
+    for key in ("config", "rig", "exposure_ms", "methods", "skipped", "summary", "timings", "test_scenes", "noise_scales", "evaluation_threads"):
         assert key in results
     assert json.loads((tmp_path / "results.json").read_text())["exposure_ms"] == 440.0
     kinds = {m["id"]: m["kind"] for m in results["methods"]}

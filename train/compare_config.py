@@ -114,8 +114,11 @@ class CompareConfig:
     """Masked pixels per test scene that every method is measured on: one fixed random subset per
     scene, the same for every method and noise level (0 = every masked pixel)."""
     eval_workers: int = 1
-    """Processes evaluating pattern sets in parallel (each single-threaded; results do not depend
-    on it). 1 evaluates in this process with torch's default threads."""
+    """Processes evaluating pattern sets in parallel, each single-threaded. 1 evaluates in this
+    process on torch's threads (``displex --threads``), whose sums round differently with another
+    thread count: the numbers can then differ in their last digits (a few hundredths of a degree
+    in a scene's MAE); with more than 1, or with ``--threads 1``, they do not depend on it.
+    ``results.json`` records the count (``evaluation_threads``)."""
     train_scenes: tuple[str, ...] = ()
     """Scenes for learning and search; empty = the default synthetic train split."""
     test_scenes: tuple[str, ...] = ()
