@@ -135,26 +135,31 @@ def atomic_path(path: str | Path, suffix: str = "", sync: bool = False):
 
 @contextmanager
 def signals_held():
-    """Hold SIGINT and SIGTERM back for the block (a few renames), then raise them again: an
-    interrupt arrives after the block, never in its middle. Python handlers run in the main thread
-    only, so elsewhere the block runs as is. (Blocking the signals with ``pthread_sigmask`` is not
-    enough: the kernel hands a process's signal to any thread that does not block it, torch's
-    included, and Python's handler then interrupts the main thread all the same.)"""
+    """Hold SIGINT and SIGTERM back for the block (a few renames and a clean-up), then raise them
+    again, SIGTERM first: an interrupt arrives after the block, never in its middle. Python
+    handlers run in the main thread only, so elsewhere the block runs as is, and a signal whose
+    handler was not set from Python is left alone. (Blocking the signals with ``pthread_sigmask``
+    is not enough: the kernel hands a process's signal to any thread that does not block it,
+    torch's included, and Python's handler then interrupts the main thread all the same.)"""
     import signal
     import threading
 
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    pending: list[int] = []
-    previous = {number: signal.signal(number, lambda received, _frame: pending.append(received)) for number in (signal.SIGINT, signal.SIGTERM)}
+    # SIGINT last: it is restored, and raised, after SIGTERM, so its KeyboardInterrupt can cut
+    # neither the restoring nor the other signal short.
+    numbers = [number for number in (signal.SIGTERM, signal.SIGINT) if signal.getsignal(number) is not None]
+    pending: set[int] = set()
+    previous = {number: signal.signal(number, lambda received, _frame: pending.add(received)) for number in numbers}
     try:
         yield
     finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
-        for number in dict.fromkeys(pending):
-            signal.raise_signal(number)
+        for number in numbers:
+            signal.signal(number, previous[number])
+        for number in numbers:
+            if number in pending:
+                signal.raise_signal(number)
 
 
 STAGING_PREFIX = ".staging."
@@ -208,18 +213,18 @@ def staged_files(folder: str | Path, last: tuple[str, ...] = (), obsolete: list 
                 (folder / relative).parent.mkdir(parents=True, exist_ok=True)
                 os.replace(staging / relative, folder / relative)
 
-        with signals_held():  # Ctrl-C in the middle would leave a mixture of two runs
+        with signals_held():  # Ctrl-C in the middle would leave a mixture of two runs (or a staging folder)
             for name in last:
                 (folder / name).unlink(missing_ok=True)
             move(relative for relative in files if relative.parts[0] not in last)
             for path in obsolete or ():
                 Path(path).unlink(missing_ok=True)
             move(relative for relative in files if relative.parts[0] in last)
+            shutil.rmtree(staging, ignore_errors=True)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         _remove_empty(created)
         raise
-    shutil.rmtree(staging, ignore_errors=True)
 
 
 def _missing_folders(folder: Path) -> list[Path]:

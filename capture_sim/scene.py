@@ -166,7 +166,8 @@ def validate_scene(scene: Scene) -> None:
     if scene.depth is not None:
         nearest = float(scene.depth[scene.mask].min())
         if nearest <= MIN_DEPTH_M:
-            raise InputError(f"{name}: depth must exceed {MIN_DEPTH_M * 1000:g} mm inside the mask, got {nearest:g} (metres?)")
+            raise InputError(f"{name}: depth must exceed {MIN_DEPTH_M * 1000:g} mm inside the mask, got {nearest:g} m "
+                             "(depth is in metres: another unit, or an unset background inside the mask?)")
         median = float(np.median(scene.depth[scene.mask]))
         if median > MAX_DEPTH_M:
             raise InputError(f"{name}: depth must be in metres, but its median inside the mask is {median:g} (millimetres?)")

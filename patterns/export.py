@@ -24,7 +24,7 @@ import numpy as np
 from capture_sim.atomic import staged_files, write_bytes, write_json
 from capture_sim.errors import InputError, check_array, is_whole_number
 from capture_sim.png import encode_png, png_header, read_png
-from capture_sim.rig import Rig, available_rigs, load_rig, panel_size
+from capture_sim.rig import Rig, panel_size
 from patterns.contact_sheet import save_contact_sheet
 from patterns.io import check_patterns_match_rig, validate_patterns
 
@@ -265,7 +265,6 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
     height, width = manifest["panel_pixels"]
     bit_depth = manifest["bit_depth"]
     _check_bit_depth(bit_depth, f"{frames_dir}: manifest bit_depth")
-    _check_rig_name(manifest, frames_dir)
     for frame in manifest["frames"]:
         path = frames_dir / frame["file"]
         if not path.is_file():
@@ -323,17 +322,6 @@ _RGB = 2
 def _check_bit_depth(bit_depth, what: str) -> None:
     if not is_whole_number(bit_depth) or bit_depth not in _BIT_DEPTHS:
         raise InputError(f"{what} must be 8 or 16, got {bit_depth!r}")
-
-
-def _check_rig_name(manifest: dict, frames_dir: Path) -> None:
-    """A manifest naming a rig preset must restate that preset's grid: the name goes into the
-    imported pattern file, and a later export would otherwise refuse it for a grid it never had."""
-    name = manifest.get("rig")
-    if isinstance(name, str) and name in available_rigs():
-        preset = load_rig(name)
-        if (preset.rows, preset.cols) != (manifest["rows"], manifest["cols"]):
-            raise InputError(f"{frames_dir}: the manifest names rig {name}, a {preset.rows} x {preset.cols} grid, "
-                             f"but lists a {manifest['rows']} x {manifest['cols']} grid")
 
 
 def _read_manifest(frames_dir: Path) -> dict:

@@ -17,7 +17,7 @@ from __future__ import annotations
 import kornia
 import torch
 
-from capture_sim.errors import InputError, check_array
+from capture_sim.errors import InputError, check_array, is_whole_number
 
 PSNR_CAP_DB = 100.0
 """PSNR of identical images is infinite; it is reported as this cap so results stay finite."""
@@ -148,10 +148,10 @@ def ssim(prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, wind
         SSIM averaged over masked pixels, channels and images, in [-1, 1].
     """
     prediction, truth, mask = _check_images(prediction, truth, mask)
-    if isinstance(window_size, bool) or not isinstance(window_size, int) or window_size < 1 or window_size % 2 == 0:
-        raise InputError(f"window_size must be a positive odd number, got {window_size}")
+    if not is_whole_number(window_size, 1) or window_size % 2 == 0:
+        raise InputError(f"window_size must be a positive odd whole number, got {window_size!r}")
     height, width = mask.shape
-    window = min(window_size, 2 * ((min(height, width) - 1) // 2) + 1)
+    window = min(int(window_size), 2 * ((min(height, width) - 1) // 2) + 1)
 
     def to_kornia(images):  # channels-last (..., H, W, 3) -> (B, 3, H, W), zero outside the mask
         return (images.detach().double() * mask[..., None]).reshape(-1, height, width, 3).permute(0, 3, 1, 2)

@@ -902,7 +902,7 @@ def test_own_scene_files_from_the_user_scenario(tmp_path, scene_file, capsys, mo
     evaluate = ["evaluate", "--patterns", "olat", "--method", "woodham", "--scenes"]
     cases = [
         ("nan_inside.npz", f"scene {meta['name']} ({tmp_path / 'nan_inside.npz'}): normal has NaN or infinite values at 1 pixels inside the mask"),
-        ("tiny_depth.npz", "depth must exceed 1 mm inside the mask, got 1e-09 (metres?)"),
+        ("tiny_depth.npz", "depth must exceed 1 mm inside the mask, got 1e-09 m (depth is in metres"),
     ]
     for name, message in cases:
         capsys.readouterr()

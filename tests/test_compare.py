@@ -335,7 +335,7 @@ def test_specular_free_summary_against_plain_computation():
 def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     config = tiny_config(scenes, rerender_counts=[2])
     results = run_compare(config, tmp_path, progress=False)
-    for key in ("config", "rig", "exposure_ms", "methods", "skipped", "summary", "timings", "test_scenes", "noise_scales", "evaluation_threads"):
+    for key in ("config", "rig", "exposure_ms", "methods", "skipped", "summary", "timings", "test_scenes", "noise_scales", "threads"):
         assert key in results
     assert json.loads((tmp_path / "results.json").read_text())["exposure_ms"] == 440.0
     kinds = {m["id"]: m["kind"] for m in results["methods"]}
@@ -403,7 +403,7 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
         os.utime(changed, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
         try:
             # Every stale run in one message, naming the changed file (the rig's: all of them).
-            with pytest.raises(InputError, match=rf"made from input files .* that have changed since \({changed.name}\)") as refused:
+            with pytest.raises(InputError, match=rf"made from input files .* rewritten, replaced or touched since \({changed.name}\)") as refused:
                 run_compare(config, tmp_path, progress=False)
             if changed.suffix == ".toml":
                 assert "earlier runs in" in str(refused.value) and str(refused.value).count(changed.name) >= 2, refused.value
@@ -448,6 +448,17 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     run_compare(config, tmp_path, progress=False)
     assert learned_file.with_name("learned_M2_seed0.run.json").is_file()
     assert np.array_equal(load_patterns(learned_file)[0], learned_values)
+    # A pattern file deleted by hand leaves its record: the record goes before the run writes a
+    # new file, so a stop between the two cannot pair the new file with the old record.
+    learned_file.unlink()
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("train.compare_methods.train_patterns", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        run_compare(config, tmp_path, progress=False)
+    assert not learned_file.with_name("learned_M2_seed0.run.json").exists()
 
 
 def test_test_scenes_listed_twice_are_refused_and_training_scenes_among_them_warned(scenes, tmp_path):
@@ -783,3 +794,8 @@ def test_per_scene_table_against_plain_computation():
     # At noise 0.5 family a (scene mean 10.0) beats b (12.0), although b wins on the capsule.
     assert table[0] == "| scene | learned, M = 2 | a, M = 2 | OLAT + Woodham |"
     assert table[2:] == ["| sphere | 5.50 | 9.00 | 1.00 |", "| capsule | 8.50 | 11.00 | 2.50 |"]
+    # Two files may carry one scene name: rows go by position. An all-invalid scene is marked.
+    results["test_scenes"] = ["same", "same"]
+    results["methods"][0]["evaluations"][0]["scenes"][1]["invalid_fraction"] = 1.0
+    table = [row for line in scene_section(results, summary_tables(results)) for row in line.splitlines() if row.startswith("|")]
+    assert table[2:] == ["| same | 5.50 | 9.00 | 1.00 |", "| same | 8.50 | 11.00 (all invalid) | 2.50 |"]

@@ -164,7 +164,7 @@ def test_checkpoint_of_scene_files_rewritten_since_is_refused(tmp_path, scene_di
     train_patterns(config, tmp_path / "a.npz", progress=False)  # unchanged files: the finished run is reused
     rewritten = sorted(copies[1].glob("*.npz"))[0]
     rewritten.write_bytes(rewritten.read_bytes())  # same content, written again: its files may differ
-    with pytest.raises(InputError, match=rf"made from input files \(scenes, start patterns, rig\) that were rewritten or replaced since \({rewritten.name}\); pass --fresh"):
+    with pytest.raises(InputError, match=rf"made from input files \(scenes, start patterns, rig\) that were rewritten, replaced or touched since \({rewritten.name}\); pass --fresh"):
         train_patterns(config, tmp_path / "a.npz", progress=False)
 
 
@@ -387,40 +387,70 @@ def test_a_second_run_on_the_same_output_is_refused(tmp_path, scene_dirs):
 
 
 def test_the_output_lock_and_the_final_moves_survive_races_and_interrupts(tmp_path, monkeypatch):
-    """A run that opened the lock file just before its holder removed it must not hold a lock on
-    the removed file (a third run could then lock a new one beside it); Ctrl-C during the moves of
-    staged outputs arrives after them."""
+    """A run that opened the lock file just before its holder removed it must not keep a lock on
+    the removed file (a third run could lock a new one beside it); SIGINT and SIGTERM during the
+    moves of staged outputs arrive after them and after the clean-up, SIGTERM first."""
+    import builtins
     import os
     import signal
 
-    from capture_sim.atomic import exclusive_output, locks_current_file, signals_held, staged_files
+    from capture_sim.atomic import exclusive_output, staged_files
 
+    out = tmp_path / "a.npz"
     lock = tmp_path / ".a.npz.lock"
-    with exclusive_output(tmp_path / "a.npz", "training run"):
-        early = open(lock, "a")  # opened by a second run while the first holds the lock
-    assert not lock.exists() and not locks_current_file(early, lock)
-    lock.touch()
-    assert not locks_current_file(early, lock)  # a new file under the old name
-    early.close()
-    with open(lock, "a") as current:
-        assert locks_current_file(current, lock)
+    opened = []
 
-    moved = []
-    with pytest.raises(KeyboardInterrupt):
-        with signals_held():
-            os.kill(os.getpid(), signal.SIGINT)
-            moved.append("after the interrupt was sent")
-    assert moved == ["after the interrupt was sent"]
-    # An interrupt during the moves of staged outputs: every file lands, then the interrupt.
-    replace = os.replace
+    def open_then_lose_the_race(path, *args, **kwargs):
+        handle = builtins.open(path, *args, **kwargs)
+        if not opened:  # the holder removes the file between this open and the lock
+            os.unlink(path)
+        opened.append(path)
+        return handle
+
+    monkeypatch.setattr("capture_sim.atomic.open", open_then_lose_the_race, raising=False)
+    with exclusive_output(out, "training run"):
+        monkeypatch.undo()
+        assert len(opened) == 2 and lock.exists()  # locked the file that stands there now
+        with pytest.raises(InputError, match="another training run is writing"):
+            with exclusive_output(out, "training run"):
+                pass
+
+    replace, received = os.replace, []
 
     def interrupted_replace(source, target):
         replace(source, target)
         os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGTERM)
 
     monkeypatch.setattr("capture_sim.atomic.os.replace", interrupted_replace)
+    previous = signal.signal(signal.SIGTERM, lambda number, _frame: received.append(number))
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with staged_files(tmp_path / "out") as staging:
+                (staging / "a.txt").write_text("a")
+                (staging / "b.txt").write_text("b")
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert sorted(path.name for path in (tmp_path / "out").iterdir()) == ["a.txt", "b.txt"]  # no staging folder
+    assert received == [signal.SIGTERM]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_train_writes_its_pattern_file_and_config_record_together(tmp_path, scene_dirs, monkeypatch):
+    """A stop while the outputs are written leaves the earlier run's pair, not a new pattern file
+    beside the earlier record."""
+    out = tmp_path / "a.npz"
+    config = _config(scene_dirs, steps=1, val_every=0)
+    train_patterns(config, out, progress=False)
+    before = {path.name: path.read_bytes() for path in (out, tmp_path / "a.config.json")}
+    write_json = __import__("train.learn", fromlist=["write_json"]).write_json
+
+    def stopped(path, *args, **kwargs):
+        if str(path).endswith(".config.json"):
+            raise KeyboardInterrupt
+        return write_json(path, *args, **kwargs)
+
+    monkeypatch.setattr("train.learn.write_json", stopped)
     with pytest.raises(KeyboardInterrupt):
-        with staged_files(tmp_path / "out") as staging:
-            (staging / "a.txt").write_text("a")
-            (staging / "b.txt").write_text("b")
-    assert sorted(path.name for path in (tmp_path / "out").iterdir()) == ["a.txt", "b.txt"]
+        train_patterns(dataclasses.replace(config, steps=2), out, progress=False, checkpoint_mode="fresh")
+    assert {path.name: path.read_bytes() for path in (out, tmp_path / "a.config.json")} == before

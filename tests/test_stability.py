@@ -313,6 +313,7 @@ def test_edge_cases_from_the_api_fuzz(problem):
     for window in (3.0, "11", True):
         with pytest.raises(InputError, match="window_size"):
             ssim(image, image, mask, window_size=window)
+    assert ssim(image, image, mask, window_size=__import__("numpy").int64(3)) == pytest.approx(1.0)
     captures, emission, points = (problem[key].float() for key in ("captures", "emission", "points"))
     emission = emission.clone().requires_grad_()
     normal, albedo = solve_ps_unrolled(captures[:, :0], emission, points[:0], problem["scene"].lights.float(), Falloff())

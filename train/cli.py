@@ -207,8 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     invrender = commands.add_parser("invrender", help="baseline inverse renderer: normals, basis BRDFs, relighting")
     invrender.add_argument("--scene", type=_path, required=True, help="scene file (.npz)")
-    invrender.add_argument("--patterns", type=_patterns_or_olat, default="olat", help="pattern file, or 'olat' (fit on 5/6 of the OLAT images)")
-    invrender.add_argument("--basis", default="auto", help="number of basis BRDFs J, or 'auto' (model selection)")
+    invrender.add_argument("--patterns", type=_patterns_or_olat, default="olat", help="pattern file, or 'olat' (fit on 5/6 of the OLAT images; the default)")
+    invrender.add_argument("--basis", default="auto", help="number of basis BRDFs J, or 'auto' (model selection; the default)")
     invrender.add_argument("--iterations", type=int, default=None, help="Adam steps of the final fit (default 400)")
     invrender.add_argument("--noise", choices=NOISE_CHOICES, default="default", help=NOISE_HELP)
     invrender.add_argument("--exposure", default="rig", help=EXPOSURE_HELP + " (with --patterns; OLAT captures are always auto-exposed)")

@@ -403,9 +403,9 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
         "specular_free": specular_free,
         "skipped": skipped,
         "timings": timings,
-        # Sums split across threads round differently: with eval_workers = 1 the numbers can
-        # change in their last digits with the thread count (workers always use one thread).
-        "evaluation_threads": 1 if config.eval_workers > 1 else torch.get_num_threads(),
+        # Sums split across threads round differently: numbers can change in their last digits
+        # with the thread count of this process (worker processes use one thread each).
+        "threads": torch.get_num_threads(),
     }
     results["summary"] = summary_tables(results)
     results["timings"]["total_seconds"] = time.perf_counter() - began

@@ -114,11 +114,11 @@ class CompareConfig:
     """Masked pixels per test scene that every method is measured on: one fixed random subset per
     scene, the same for every method and noise level (0 = every masked pixel)."""
     eval_workers: int = 1
-    """Processes evaluating pattern sets in parallel, each single-threaded. 1 evaluates in this
-    process on torch's threads (``displex --threads``), whose sums round differently with another
-    thread count: the numbers can then differ in their last digits (a few hundredths of a degree
-    in a scene's MAE); with more than 1, or with ``--threads 1``, they do not depend on it.
-    ``results.json`` records the count (``evaluation_threads``)."""
+    """Processes evaluating pattern sets in parallel, each single-threaded; 1 evaluates in this
+    process on torch's threads (``displex --threads``). Sums split across threads round
+    differently, so numbers evaluated in this process can differ in their last digits (a few
+    hundredths of a degree in a scene's MAE) with the thread count, which ``results.json`` records
+    (``threads``); with ``--threads 1`` nothing depends on it."""
     train_scenes: tuple[str, ...] = ()
     """Scenes for learning and search; empty = the default synthetic train split."""
     test_scenes: tuple[str, ...] = ()

@@ -88,7 +88,7 @@ def _stale_reason(path: Path, run_config) -> str | None:
     # from the current rig and init files, so it is not reused.
     recorded, current = _run_record(path).get("input_files"), input_fingerprints(run_config)
     if recorded != current:
-        return f"made from input files (scenes, rig or init patterns) that have changed since{changed_files(recorded or [], current)}, or not recorded"
+        return f"made from input files (scenes, rig or init patterns) that were rewritten, replaced or touched since{changed_files(recorded or [], current)}, or not recorded"
     return None
 
 
@@ -135,6 +135,7 @@ def learned_method(config: CompareConfig, num_patterns: int, seed: int, pattern_
     method_id, path, train_config = _learned_output(config, num_patterns, seed, rerender, pattern_dir)
     existing = _reusable(path, train_config, "learned patterns")
     if existing is None:
+        _record_path(path).unlink(missing_ok=True)  # an earlier run's record must not vouch for this run's file
         result = train_patterns(train_config, path, logdir=None if logdir is None else logdir / method_id, progress=progress,
                                 checkpoint_mode="resume_or_fresh")
         seconds = result.seconds  # includes the sessions of a resumed run
@@ -157,6 +158,7 @@ def searched_method(config: CompareConfig, run: SearchRun, pattern_dir: Path, pr
     path = pattern_dir / f"{run.name}.npz"
     existing = _reusable(path, search_config, "searched patterns")
     if existing is None:
+        _record_path(path).unlink(missing_ok=True)
         meta = run_search(search_config, path, logdir=None if logdir is None else logdir / run.name, progress=progress)
         patterns = load_patterns(path)[0]
         write_json(_record_path(path), {"seconds": meta["seconds"], "input_files": input_fingerprints(search_config)})

@@ -295,8 +295,9 @@ def _fit_and_evaluate(config: InvRenderConfig, scene, pixels, split, data: _Data
     timings["initial_estimate"] = time.perf_counter() - tick
     if not bool(initial.valid.any()):
         # The fit would start from filled-in defaults, and the light-model test compares nothing.
-        warnings.warn(f"photometric stereo flags every pixel of {scene.name} invalid under these captures (too few, identical, "
-                      "dark or saturated): the fit starts from default normals and its results say little", DisplexWarning, stacklevel=2)
+        warnings.warn(f"photometric stereo flags every pixel of {scene.label} invalid under these captures (too few, identical or "
+                      "dark ones; `displex evaluate` names the flags): the fit starts from default normals and its results say little",
+                      DisplexWarning, stacklevel=2)
 
     # ---- light model: near field unless far field is indistinguishable
     tick = time.perf_counter()

@@ -366,8 +366,8 @@ def load_checkpoint(checkpoint: Path, resolved: dict) -> dict:
         changed = sorted(key for key in resolved if state["config"].get(key) != resolved[key]) if isinstance(state["config"], dict) else []
         if changed == ["input_files"]:
             files = changed_files(state["config"]["input_files"], resolved["input_files"])
-            raise InputError(f"checkpoint {checkpoint} was made from input files (scenes, start patterns, rig) that were rewritten or "
-                             f"replaced since{files}; {_AFRESH}")
+            raise InputError(f"checkpoint {checkpoint} was made from input files (scenes, start patterns, rig) that were rewritten, "
+                             f"replaced or touched since{files}; {_AFRESH}")
         raise InputError(f"checkpoint {checkpoint} was written with another config ({', '.join(changed) or 'other keys'} differ); {_AFRESH}")
     return state
 

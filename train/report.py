@@ -72,7 +72,9 @@ def aggregate_rows(results: dict, noise: float, specular_free: bool = False) -> 
         row = {"series": series, "kind": first["kind"], "M": count, "seeds": len(members),
                "label": "learned" if first["kind"] == "learned" else first["label"]}  # seeds differ per M: said per cell
         for key in _ROW_METRICS:
-            row[key] = float(np.mean([evaluation[key] for _, evaluation in members]))
+            # reconstruct_seconds is absent from results of older versions ('-' in the tables).
+            row[key] = float(np.mean([evaluation.get(key, math.nan) if key == "reconstruct_seconds" else evaluation[key]
+                                      for _, evaluation in members]))
         row["mae_std"] = float(np.std([evaluation["mae"] for _, evaluation in members]))
         costs = [method["cost_seconds"] for method, _ in members if method["cost_seconds"] is not None]
         row["cost_seconds"] = float(np.mean(costs)) if costs else None
@@ -768,30 +770,33 @@ def summary_section(results: dict, summary: dict) -> list[str]:
     return lines
 
 
-def _scene_maes(results: dict, count: int | None, noise: float, kind: str, series: str | None = None) -> dict[str, float]:
-    """Scene name -> MAE of the ``kind`` methods (of ``series``, if given) at M = ``count`` (any M
-    if None) and ``noise``; the mean over seeds where several methods match (learned seeds)."""
-    values: dict = defaultdict(list)
+def _scene_maes(results: dict, count: int | None, noise: float, kind: str, series: str | None = None) -> list[tuple[float, bool] | None]:
+    """Per test scene, in ``results["test_scenes"]`` order (positions, not names: two files may
+    carry one scene name): (MAE, every pixel invalid) of the ``kind`` methods (of ``series``, if
+    given) at M = ``count`` (any M if None) and ``noise``, the mean over seeds where several
+    methods match (learned seeds), all-invalid only if it is for every seed; None where none has
+    the scene."""
+    values: list[list] = [[] for _ in results["test_scenes"]]
     for method in results["methods"]:
         if method["kind"] == kind and (count is None or method["M"] == count) and (series is None or method["series"] == series):
             evaluation = _evaluation(method, noise)
-            for scene in (evaluation or {}).get("scenes", []):
-                values[scene["name"]].append(scene["mae"])
-    return {name: float(np.mean(maes)) for name, maes in values.items()}
+            for position, scene in enumerate((evaluation or {}).get("scenes", [])[: len(values)]):
+                values[position].append((scene["mae"], all_invalid(scene)))
+    return [(float(np.mean([mae for mae, _ in entries])), all(invalid for _, invalid in entries)) if entries else None for entries in values]
 
 
 def _scene_wins(results: dict, count: int, heuristic: str, noise: float) -> tuple[int, int]:
     """(test scenes where the learned patterns' mean MAE over seeds beats ``heuristic``'s, scenes
     compared) at M = ``count`` and ``noise``."""
     learned, other = _scene_maes(results, count, noise, "learned"), _scene_maes(results, count, noise, "heuristic", heuristic)
-    shared = [name for name in learned if name in other]
-    return sum(learned[name] < other[name] for name in shared), len(shared)
+    shared = [(mine, theirs) for mine, theirs in zip(learned, other) if mine is not None and theirs is not None]
+    return sum(mine[0] < theirs[0] for mine, theirs in shared), len(shared)
 
 
 def scene_section(results: dict, summary: dict) -> list[str]:
-    """Per test scene at the default noise: the learned patterns' MAE and the best heuristic
-    family's at each M (the family best over all scenes), and the OLAT reference's, so that a
-    reader sees on which objects and materials every method fails."""
+    """Per test scene at the default noise: the learned patterns' MAE and, at each M with learned
+    patterns, the best heuristic family's (the family best over all scenes), and the OLAT
+    reference's, so that a reader sees on which objects and materials every method fails."""
     default = results["default_noise"]
     best = {c["M"]: c["best_heuristic"] for c in summary["learned_vs_heuristic"] if math.isclose(c["noise_scale"], default)}
     columns = []
@@ -802,14 +807,19 @@ def scene_section(results: dict, summary: dict) -> list[str]:
     reference = next((m for m in results["methods"] if m["kind"] == "reference"), None)
     if reference is not None:
         columns.append((reference["label"], _scene_maes(results, None, default, "reference")))
-    columns = [(name, maes) for name, maes in columns if maes]
+    columns = [(name, maes) for name, maes in columns if any(entry is not None for entry in maes)]
     if not columns:
         return []
-    body = [[scene] + [_fmt(maes.get(scene)) for _, maes in columns] for scene in results["test_scenes"]]
+
+    def cell(entry) -> str:
+        return "-" if entry is None else _fmt(entry[0]) + (" (all invalid)" if entry[1] else "")
+
+    body = [[scene] + [cell(maes[position]) for _, maes in columns] for position, scene in enumerate(results["test_scenes"])]
     return ["## Per test scene", "",
             f"MAE (deg) of each test scene at noise scale {default:g}: the learned patterns (mean over seeds) and the heuristic "
             "family with the lowest MAE over all scenes at that M. The scene names give the shape and the material: where "
-            "every method's error is high, the scene is beyond what the Lambertian reconstructor can fit.", "",
+            "every method's error is high, the scene is beyond what the Lambertian reconstructor can fit. '(all invalid)': "
+            "every pixel was flagged invalid, and the number measures the placeholder normal.", "",
             _table(["scene"] + [name for name, _ in columns], body), ""]
 
 
