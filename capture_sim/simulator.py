@@ -143,6 +143,14 @@ def auto_exposure(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERC
             percentile is infinite or a subnormal number (a scene scaled past the dtype's range,
             whose exposure would be 0 or overflow).
     """
+    return auto_exposure_at(radiance, percentile, target)[0]
+
+
+def auto_exposure_at(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERCENTILE,
+                     target: float = AUTO_EXPOSURE_TARGET) -> tuple[float, int | None]:
+    """``auto_exposure``, and the flat index into ``radiance`` of the value at the percentile that
+    set it (None for a dark or empty scene, whose exposure is the fixed 1.0): e = target / that
+    value, a function of one noise-free capture (``train.capture.exposure_with_gradient``)."""
     # The rank statistic is exact in the input's own dtype (converting to float64 would only copy).
     if not (0 < percentile <= 100 and 0 < target < math.inf):
         raise InputError(f"auto exposure needs a percentile in (0, 100] and a positive target, got {percentile!r}, {target!r}")
@@ -150,7 +158,7 @@ def auto_exposure(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERC
     if not values.is_floating_point():
         values = values.to(torch.float32)
     if values.numel() == 0:
-        return 1.0  # no pixels: nothing to expose for
+        return 1.0, None  # no pixels: nothing to expose for
     if math.isnan(float(values.sum())):  # any NaN makes the sum NaN; ~5x cheaper than isnan().any()
         raise InputError("auto exposure: the noise-free radiance contains NaN")
     # Nearest rank ceil(p n / 100) in exact arithmetic: in floats 99.9 / 100 * 1000 is 999.0000000000001,
@@ -158,17 +166,19 @@ def auto_exposure(radiance: torch.Tensor, percentile: float = AUTO_EXPOSURE_PERC
     rank = min(values.numel(), max(1, math.ceil(Fraction(str(percentile)) * values.numel() / 100)))
     # The rank-th smallest is the smallest of the top numel - rank + 1: topk finds those few
     # values ~3x faster than kthvalue's full selection (a learning step asks every time).
-    level = float(torch.topk(values, values.numel() - rank + 1, sorted=False).values.kthvalue(1).values)
+    top = torch.topk(values, values.numel() - rank + 1, sorted=False)
+    smallest = top.values.kthvalue(1)
+    level, index = float(smallest.values), int(top.indices[smallest.indices])
     # Any positive normal number works: radiance may come in any units (an OLAT stack scaled by
     # 1e-20 is still a scene); below the dtype's smallest normal the gain would overflow it.
     if level == 0:
-        return 1.0
+        return 1.0, None
     if level < 0:
         raise InputError(f"auto exposure: the radiance's {percentile:g}th percentile {level:g} is negative; radiance is >= 0")
     if not torch.finfo(values.dtype).tiny <= level < math.inf:
         raise InputError(f"auto exposure: the radiance's {percentile:g}th percentile {level:g} is outside the range of "
                          f"{values.dtype} (the scene's OLAT values are scaled too far); rescale the scene")
-    return target / level
+    return target / level, index
 
 
 def check_exposure_range(exposure: float, *exposed: torch.Tensor) -> None:
@@ -287,7 +297,8 @@ def simulate(
         patterns: (M, R, C, 3) set values in [0, 1] for the rig's R x C grid.
         transport: light transport of the scene's pixels, K = R * C lights.
         rig: display model (backlight, gamma, scale) and sensor defaults.
-        exposure: a number, "auto", or None for the rig's setting (a number or auto).
+        exposure: a number, "auto", None for the rig's setting (a number or auto), or a scalar
+            tensor, whose gradient then reaches the captures and the emission.
         noise: a NoiseModel, None for no noise (quantisation is ``bit_depth``'s: the command line's
             ``--noise off`` passes None for both), or "rig" for the rig's model.
         bit_depth: bits, None for no quantisation, or "rig" for the rig's setting.
@@ -311,7 +322,10 @@ def simulate(
     radiance = noise_free_radiance(emitted, transport)
     if exposure is None:
         exposure = rig.exposure if rig.exposure is not None else "auto"
-    if exposure != "auto":
+    gain = None
+    if isinstance(exposure, torch.Tensor):  # a scalar that carries its gradient (train.capture.exposure_with_gradient)
+        gain, exposure = exposure, float(exposure.detach())
+    elif exposure != "auto":
         try:
             exposure = float(exposure)
         except (TypeError, ValueError):
@@ -319,7 +333,8 @@ def simulate(
     exposure = auto_exposure(radiance) if exposure == "auto" else exposure
     if not exposure > 0 or not np.isfinite(exposure):
         raise InputError(f"exposure must be a positive number or 'auto', got {exposure}")
-    emission, exposed = exposure * emitted, exposure * radiance
+    gain = exposure if gain is None else gain.to(emitted.dtype)
+    emission, exposed = gain * emitted, gain * radiance
     check_exposure_range(exposure, emission, exposed)
     noise_model = rig.noise if noise == "rig" else noise
     bits = rig.bit_depth if bit_depth == "rig" else bit_depth

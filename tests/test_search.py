@@ -344,3 +344,26 @@ def test_a_second_search_on_the_same_output_is_refused(scene_dir, tmp_path):
         with pytest.raises(InputError, match="another search is writing"):
             run_search(SearchConfig(maxeval=2, scenes=(str(scene_dir),), scene_size=SIZE), out, progress=False)
     assert not any(tmp_path.iterdir())
+
+
+def test_auto_exposure_carries_its_gradient_into_the_search_objective(scene_dir, monkeypatch):
+    """Auto exposure e = target / (noise-free capture at the percentile) is a function of the
+    patterns: its gradient is exact (gradcheck, float64), its value auto exposure's, and the
+    objective's gradient goes through it (a brighter set is exposed for less time)."""
+    from capture_sim.scene import load_scene
+    from patterns.families import make_patterns
+    from train.capture import exposure_with_gradient, scene_exposure
+
+    rig = load_rig()
+    pixels = scene_pixels(load_scene(scene_dir / "blob.npz"), rig, require_normals=True)
+    pixels = dataclasses.replace(pixels, transport=dataclasses.replace(pixels.transport, matrix=pixels.transport.matrix.double()))
+    patterns = make_patterns("mono_gradient", 4).double().clamp(0.05, 0.95).requires_grad_()
+    assert float(exposure_with_gradient(pixels, patterns).detach()) == pytest.approx(scene_exposure(pixels, patterns.detach()), rel=1e-12)
+    assert torch.autograd.gradcheck(lambda p: exposure_with_gradient(pixels, p), (patterns,), eps=1e-7, atol=1e-9)
+
+    calls = []
+    monkeypatch.setattr(train.search, "exposure_with_gradient", lambda *args: calls.append(1) or exposure_with_gradient(*args))
+    scenes = prepare_scenes((str(scene_dir),), "train", rig, SIZE, 0)
+    objective = PatternObjective("tri_complementary", 2, scenes, rig.rows, rig.cols, pixels_per_scene=100)
+    x = default_vector("tri_complementary", 2).numpy()
+    assert objective(x, True)[0] == pytest.approx(objective(x, False)[0], abs=1e-2) and len(calls) == len(scenes)

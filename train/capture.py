@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 
 from capture_sim.display import display_emission
-from capture_sim.simulator import Capture, auto_exposure, noise_free_radiance, simulate
+from capture_sim.simulator import AUTO_EXPOSURE_TARGET, Capture, auto_exposure, auto_exposure_at, noise_free_radiance, simulate
 from train.scene_pixels import ScenePixels
 
 
@@ -19,6 +19,28 @@ def scene_exposure(pixels: ScenePixels, patterns: torch.Tensor) -> float:
     with torch.no_grad():
         emitted = display_emission(patterns, rig.backlight_flat(patterns.dtype), rig.gamma, rig.scale)
         return auto_exposure(noise_free_radiance(emitted, pixels.transport))
+
+
+def exposure_with_gradient(pixels: ScenePixels, patterns: torch.Tensor) -> torch.Tensor:
+    """Auto exposure e = target / r* (``scene_exposure``'s value) as a scalar tensor that carries
+    its gradient: r* is the noise-free capture at the percentile, which depends on the patterns.
+    A brighter pattern set is exposed for less time, so its gain in signal over noise is mostly
+    taken back; without this path a gradient sees only the gain.
+
+    Args:
+        pixels: the prepared scene (the pixels auto exposure looks at).
+        patterns: (M, R, C, 3) set values in [0, 1], possibly requiring grad.
+    """
+    rig = pixels.rig
+    emitted = display_emission(patterns, rig.backlight_flat(patterns.dtype), rig.gamma, rig.scale)  # (M, K, 3)
+    with torch.no_grad():
+        radiance = noise_free_radiance(emitted.detach(), pixels.transport)  # (M, N, 3)
+        value, index = auto_exposure_at(radiance)
+    if index is None:
+        return torch.tensor(value, dtype=emitted.dtype)  # a dark scene: auto exposure's fixed 1, no gradient
+    m, n, c = (int(i) for i in torch.unravel_index(torch.tensor(index), radiance.shape))
+    at_percentile = (emitted[m, :, c] * pixels.transport.matrix[c, :, n].to(emitted.dtype)).sum()
+    return AUTO_EXPOSURE_TARGET / at_percentile
 
 
 def capture_scene(
@@ -36,7 +58,8 @@ def capture_scene(
         patterns: (M, R, C, 3) set values in [0, 1]; gradients flow to them.
         noise_scale: multiplies both variance terms of the rig's noise model; 0 gives an ideal
             sensor (no noise and no quantisation; clipping stays).
-        exposure: "auto" (over all the scene's masked pixels, no gradient) or a fixed number.
+        exposure: "auto" (over all the scene's masked pixels, no gradient), a fixed number, or
+            a scalar tensor whose gradient reaches the captures (``exposure_with_gradient``).
         generator: noise generator.
         columns: optional (P,) indices or a slice of a pixel subset to simulate (exposure still
             uses all; a slice selects a view, without copying the transport).
@@ -53,7 +76,7 @@ def capture_scene(
         patterns,
         transport,
         rig,
-        exposure=float(exposure),
+        exposure=exposure if isinstance(exposure, torch.Tensor) else float(exposure),
         noise=rig.noise.scaled(noise_scale) if noisy else None,
         bit_depth=rig.bit_depth if noisy else None,
         generator=generator,

@@ -355,7 +355,8 @@ def _search(args) -> None:
     _check_default_rig(config.rig, args.rig, [], config.scenes)
     refuse_overwriting(output_files(args.out), [("--config file", args.config), *_scene_files(config.scenes)])
     summary = run_search(config, args.out, logdir=args.logdir)
-    print(f"{summary['family']} M={summary['num_patterns']} {summary['algorithm']}: MAE {summary['start_mae']:.2f} -> "
+    print(f"{summary['family']} M={summary['num_patterns']} {summary['algorithm']}: MAE {summary['start_mae']:.2f} "
+          f"(the family's defaults at sharpness {summary['sharpness']:g}) -> "
           f"{summary['best_mae']:.2f} deg in {summary['evaluations']} evaluations ({summary['stop_reason']}); trace {summary['trace_csv']}")
 
 

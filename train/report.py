@@ -891,7 +891,9 @@ def _search_section(results: dict, out_dir: Path) -> list[str]:
     searches = [m for m in results["methods"] if m["kind"] == "search"]
     if not searches:
         return []
-    lines = ["## NLopt searches", "", "Training-scene objective (fixed pixel subset and noise draw), then test MAE at the default noise:", ""]
+    lines = ["## NLopt searches", "", "Training-scene objective (fixed pixel subset and noise draw), then test MAE at the default noise. "
+             "The start is the family's default parameters with its edges softened to the search's sharpness (so that they "
+             "get gradients), which can score worse than the family's binary patterns in the tables above:", ""]
     body = []
     for method in searches:
         info = method["info"]

@@ -7,13 +7,16 @@ training scenes, under patterns generated from the family's parameter vector:
 It is deterministic: every scene keeps one fixed subset of pixels (``pixels_per_scene``) and one
 fixed noise draw (generator seeded with ``config.seed * 1000 + scene index``) for every
 evaluation, so NLopt compares patterns, not noise draws. Gradient-based algorithms (LD_*) get the
-gradient of exactly this value by autograd (``solve_ps`` has exact implicit gradients); the angle
-is acos of the clamped cosine, as in training's uncapped 'angular' loss (``train.learn.normal_loss``),
-so the value differs from the MAE by < 0.1 degree. It is smooth only piecewise: a pixel whose
-validity flag flips (its condition number crossing the threshold, say) switches between its
-estimate and the placeholder normal, as in the MAE, a jump of up to a few tenths of a degree on
-small scene sets. Derivative-free algorithms (the default LN_BOBYQA) cope; LD_* ones can stall or
-fail on such a jump, which ends the search with the best point seen.
+gradient of this value by autograd, auto exposure included (``train.capture.exposure_with_gradient``:
+without it, the on and off levels got gradients of the wrong sign, hundreds of times too large);
+the angle is acos of the clamped cosine, as in training's uncapped 'angular' loss
+(``train.learn.normal_loss``), so the value differs from the MAE by < 0.1 degree. It is smooth only
+piecewise, and the gradient is that of the current piece: a pixel whose validity flag flips
+switches between its estimate and the placeholder normal, and a nearly degenerate pixel (condition
+number near the threshold) can switch between two self-consistent shadow masks under a change of
+1e-7 in its captures. On small scene sets the value jumps by 0.02 to 0.2 degree at steps of 0.001
+cell, far more than the gradient predicts. Derivative-free algorithms (the default LN_BOBYQA) cope;
+LD_* ones can stall or fail on such jumps, which ends the search with the best point seen.
 
 Search generates patterns at a low edge sharpness (4 per cell instead of the families' binary
 default, ``patterns.families.DEFAULT_SHARPNESS``): there, split and block edges are binary and
@@ -46,7 +49,7 @@ from capture_sim.rig import DEFAULT_RIG, check_noise_scale, load_rig
 from patterns.families import PRESETS, check_sharpness, default_vector, get_family
 from patterns.io import save_patterns
 from reconstruct.photometric_stereo import PSConfig, invalid_causes, solve_ps
-from train.capture import capture_scene
+from train.capture import capture_scene, exposure_with_gradient
 from train.config_io import config_to_dict
 from train.learn import check_logdir, config_record_path, normal_loss, summary_writer
 from train.scene_pixels import ScenePixels, fixed_pixel_subsets, scene_pixels
@@ -422,7 +425,10 @@ class PatternObjective:
         losses, invalid, flagged = [], [], defaultdict(list)
         for index, (pixels, columns) in enumerate(zip(self.scenes, self.columns)):
             noise = torch.Generator().manual_seed(self.seed * 1000 + index)
-            capture = capture_scene(pixels, patterns, self.noise_scale, "auto", noise, columns)
+            # The same value either way; with a gradient, auto exposure's share in it too (a
+            # brighter set is exposed for less time, which takes back most of its gain).
+            exposure = exposure_with_gradient(pixels, patterns) if patterns.requires_grad and torch.is_grad_enabled() else "auto"
+            capture = capture_scene(pixels, patterns, self.noise_scale, exposure, noise, columns)
             points = pixels.points if columns is None else pixels.points[columns]
             truth = pixels.normal if columns is None else pixels.normal[columns]
             result = solve_ps(capture.captures, capture.emission, points, pixels.lights(), pixels.rig.falloff, self.ps_config)
@@ -613,7 +619,7 @@ def _search(config: SearchConfig, out: Path, logdir: Path | None, progress: bool
         meta = _search_meta(config, rig, names, start, found, scenes)
         chart = trace_chart_path(out)
         caption = (f"{meta['objective']}; {len(found.history)} evaluations, stop: {found.stop_reason}; "
-                   f"start {found.start_value:.2f} deg, best {found.best_value:.2f} deg")
+                   f"start (the family's defaults at sharpness {config.sharpness:g}) {found.start_value:.2f} deg, best {found.best_value:.2f} deg")
         # The four outputs replace an earlier search's together (the pattern file last).
         with staged_files(out.parent, last=(out.name,)) as staging:
             save_patterns(staging / out.name, objective.patterns(found.best_x).numpy(), meta)
