@@ -799,3 +799,29 @@ def test_per_scene_table_against_plain_computation():
     results["methods"][0]["evaluations"][0]["scenes"][1]["invalid_fraction"] = 1.0
     table = [row for line in scene_section(results, summary_tables(results)) for row in line.splitlines() if row.startswith("|")]
     assert table[2:] == ["| same | 5.50 | 9.00 | 1.00 |", "| same | 8.50 | 11.00 (all invalid) | 2.50 |"]
+
+
+def test_report_reader_fixes():
+    """From a reader's review: a specular-free ratio within TIE_MARGIN of 1 is called even, not a
+    loss; the noise table marks all-invalid cells; an external set that is a heuristic's copy is
+    said to be one measurement; compute time is the median over every evaluation of a method."""
+    from train.report import _accuracy_section, _noise_section, specular_free_section
+
+    results = fake_results()
+    for method in results["methods"]:
+        method["specular_free"] = dict(method["evaluations"][0])
+        method["evaluations"][1]["reconstruct_seconds"] = 0.5 if method["series"] == "a" else 0.04
+    for method in results["methods"]:
+        if method["kind"] == "learned":
+            method["specular_free"]["mae"] = 10.05  # against a's 10.0: ratio 1.005
+    summary = summary_tables(results)
+    text = "\n".join(specular_free_section(dict(results, specular_free={"enabled": True}), summary, summary["rows"]))
+    assert "without specular reflection the two are even" in text and "is better" not in text
+    results["methods"][0]["evaluations"][0].update(invalid_fraction=1.0)
+    rows = aggregate_rows(results, 0.5)
+    assert "| a | 2 | 10.00 (all invalid) | 20.00 |" in "\n".join(_noise_section(results, rows))
+    by_series = {row["series"]: row for row in rows}
+    assert by_series["a"]["reconstruct_seconds"] == pytest.approx(np.median([0.04, 0.5, 0.04]))
+    results["methods"][2]["info"] = {"same_patterns_as": results["methods"][1]["id"]}
+    text = "\n".join(_accuracy_section(results, rows))
+    assert "Evaluated once, so their rows repeat the other's numbers: c holds the same patterns as b at M = 2." in text

@@ -314,14 +314,18 @@ def evaluate_specular_free(methods: list[Method], scenes, config: CompareConfig,
 
 
 def method_record(method: Method, out_dir: Path) -> dict:
-    """JSON record of one evaluated method (pattern file path relative to ``out_dir`` when inside it)."""
-    pattern_file = method.pattern_file
-    if pattern_file is not None:
+    """JSON record of one evaluated method (the pattern file's and a search trace chart's paths
+    relative to ``out_dir`` when inside it, so that the record reads the same from anywhere)."""
+    def inside(path):
         try:
-            pattern_file = str(Path(pattern_file).resolve().relative_to(out_dir.resolve()))
+            return str(Path(path).resolve().relative_to(out_dir.resolve()))
         except ValueError:
-            pass
+            return str(path)
+
+    pattern_file = None if method.pattern_file is None else inside(method.pattern_file)
     info = dict(method.info)
+    if "trace_png" in info:
+        info["trace_png"] = inside(info["trace_png"])
     return {"id": method.id, "kind": method.kind, "series": method.series, "label": method.label, "M": method.num_patterns,
             "seed": method.seed, "pattern_file": pattern_file, "cost_seconds": method.cost_seconds, "info": info,
             "evaluations": method.evaluations, "specular_free": method.specular_free}

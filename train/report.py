@@ -30,8 +30,8 @@ CHARTS = {
 _ROW_METRICS = ("mae", "median", "under_10", "invalid_fraction", "exposure", "capture_seconds", "compute_seconds", "reconstruct_seconds")
 _KIND_ORDER = {"learned": 0, "rerender": 1, "search": 2, "external": 3, "heuristic": 4, "reference": 5}
 _KIND_STYLE = {
-    "learned": dict(color="tab:red", marker="o", linewidth=2.5),
-    "rerender": dict(color="darkorange", marker="P", linewidth=2.0, linestyle="--"),
+    "learned": dict(color="tab:red", marker="o", linewidth=2.5, zorder=4),  # above the heuristics' markers
+    "rerender": dict(color="darkorange", marker="P", linewidth=2.0, linestyle="--", zorder=3),
     "search": dict(marker="D", linewidth=1.5),  # colours per series: _OTHER_COLOURS
     "external": dict(marker="s", linewidth=1.5),
     "heuristic": dict(linewidth=1.0, alpha=0.8, fillstyle="none"),  # markers per series: _HEURISTIC_MARKERS
@@ -72,9 +72,14 @@ def aggregate_rows(results: dict, noise: float, specular_free: bool = False) -> 
         row = {"series": series, "kind": first["kind"], "M": count, "seeds": len(members),
                "label": "learned" if first["kind"] == "learned" else first["label"]}  # seeds differ per M: said per cell
         for key in _ROW_METRICS:
-            # reconstruct_seconds is absent from results of older versions ('-' in the tables).
-            row[key] = float(np.mean([evaluation.get(key, math.nan) if key == "reconstruct_seconds" else evaluation[key]
-                                      for _, evaluation in members]))
+            if key == "reconstruct_seconds":
+                # Wall times of worker processes that share the cores swing by 2x: the median of
+                # every evaluation of the methods (all noise levels) is steadier than one of them.
+                # Absent from results of older versions ('-' in the tables).
+                times = [e.get(key, math.nan) for method, _ in members for e in method["evaluations"] + [method.get("specular_free") or {}] if e]
+                row[key] = float(np.median(times)) if times else math.nan
+            else:
+                row[key] = float(np.mean([evaluation[key] for _, evaluation in members]))
         row["mae_std"] = float(np.std([evaluation["mae"] for _, evaluation in members]))
         costs = [method["cost_seconds"] for method, _ in members if method["cost_seconds"] is not None]
         row["cost_seconds"] = float(np.mean(costs)) if costs else None
@@ -209,7 +214,7 @@ def _caption(fig, text: str) -> None:
 _HEURISTIC_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:cyan", "tab:olive", "tab:pink", "tab:gray", "gold", "teal")
 # Hollow and unlike the other kinds' filled o, P, D, s and *: nine families at one M sit on top of
 # each other in the cost charts, where colour alone did not tell them apart.
-_HEURISTIC_MARKERS = ("v", "^", "<", ">", "p", "h", "8", "d", "H")
+_HEURISTIC_MARKERS = ("v", "^", "<", ">", "p", "d", "h", "1", "2")
 _OTHER_COLOURS = {"search": ("tab:purple", "darkviolet", "mediumorchid", "indigo"), "external": ("tab:brown", "peru", "saddlebrown", "rosybrown")}
 
 
@@ -348,7 +353,8 @@ def chart_mae_vs_noise(results: dict, caption: str):
         for noise in noises:
             for row in per_noise[noise]:
                 if row["M"] == count or row["kind"] == "reference":
-                    keys.setdefault((row["kind"], row["label"], row["series"]), []).append((noise, row["mae"]))
+                    # An all-invalid point measures the placeholder normal: crossed out, the line breaks.
+                    keys.setdefault((row["kind"], row["label"], row["series"]), []).append((noise, math.nan if all_invalid(row) else row["mae"]))
         for (kind, label, series), points in sorted(keys.items(), key=lambda item: _KIND_ORDER.get(item[0][0], 9)):
             style = _style(kind, series)
             if kind == "reference":
@@ -486,6 +492,11 @@ def _pixels_text(results: dict) -> str:
     return f"a fixed random subset of at most {count} masked pixels per scene (the same for every method)" if count else "every masked pixel"
 
 
+def _timing_text(results: dict) -> str:
+    workers = results.get("config", {}).get("eval_workers", 1)
+    return f", single-threaded, {workers} worker processes sharing the machine" if workers > 1 else f", on {results.get('threads', 'all')} threads"
+
+
 def _pixels_short(results: dict) -> str:
     count = results.get("config", {}).get("eval_pixels_per_scene", 0)
     return f"at most {count} pixels" if count else "every masked pixel"
@@ -508,10 +519,16 @@ def _measurement_caption(results: dict) -> str:
         f"MAE and median are angular normal errors in degrees over {_pixels_text(results)}, averaged over scenes (each scene "
         f"weighs the same). {_capture_text(results)} Compute time = wall seconds per scene of the reconstruction "
         f"of {_pixels_short(results)} on this machine's CPU (the simulation of the captures, which the rig's camera replaces, "
-        "is left out). Exposure = mean auto-exposure gain. Cost = wall seconds spent learning "
+        f"is left out){_timing_text(results)}, the median over the method's evaluations at every noise level; only "
+        "differences of 2x or more are beyond the noise of such timings. Exposure = mean auto-exposure gain. Cost = wall seconds spent learning "
         f"(training scenes only) or searching. Learning and searches used noise scale {default:g}. {_learning_text(results)}"
         f"{_preset_text(results)}"
     )
+
+
+TIE_MARGIN = 0.01
+"""Ratios within this of 1 (learned / best heuristic) are called even, not a win or a loss: the
+test sets are a few scenes, and a heuristic picked as the best of nine on them is favoured."""
 
 
 def noise_verdict(low_noise_ratio: float, high_noise_ratio: float) -> str:
@@ -526,7 +543,7 @@ def noise_verdict(low_noise_ratio: float, high_noise_ratio: float) -> str:
     if high and not low:
         return "learned patterns overtake the best heuristic"
     change = high_noise_ratio - low_noise_ratio
-    return "the learned advantage " + ("grows" if change < -0.01 else "shrinks" if change > 0.01 else "stays about the same")
+    return "the learned advantage " + ("grows" if change < -TIE_MARGIN else "shrinks" if change > TIE_MARGIN else "stays about the same")
 
 
 def _learning_text(results: dict) -> str:
@@ -588,8 +605,10 @@ def specular_free_section(results: dict, summary: dict, rows: list[dict]) -> lis
         head = f"- M = {c['M']}: learned / best heuristic = "
         head += f"{full['ratio']:.3f} on the scenes ({full['best_heuristic']}), " if full else ""
         line = head + f"{c['ratio']:.3f} without specular reflection ({c['best_heuristic']}, {c['best_heuristic_mae']:.2f} deg)"
-        if full and full["ratio"] < 1 <= c["ratio"]:
-            line += "; the learned advantage is on the glossy pixels: on matte surfaces the best heuristic is the better choice"
+        if full and full["ratio"] < 1 and c["ratio"] >= 1 + TIE_MARGIN:
+            line += "; the learned advantage is on the glossy pixels: without specular reflection the best heuristic is better"
+        elif full and full["ratio"] < 1 and c["ratio"] > 1 - TIE_MARGIN:
+            line += "; the learned advantage is on the glossy pixels: without specular reflection the two are even"
         lines.append(line + ".")
     return lines + [""]
 
@@ -701,18 +720,24 @@ def _accuracy_section(results: dict, rows: list[dict]) -> list[str]:
 
     lines = [f"## Accuracy and cost at noise scale {default:g}", "",
              "Mean angular error (deg), method x M (lower is better):", "", pivot("mae", 2), ""]
+    labels_by_id = {method["id"]: method["label"] for method in results["methods"]}
+    copies = [f"{method['label']} holds the same patterns as {labels_by_id.get(method['info']['same_patterns_as'], method['info']['same_patterns_as'])} "
+              f"at M = {method['M']}" for method in results["methods"] if (method.get("info") or {}).get("same_patterns_as")]
+    if copies:  # identical numbers in two rows are one measurement, not two that agree
+        lines += ["Evaluated once, so their rows repeat the other's numbers: " + "; ".join(copies) + ".", ""]
     if reference is not None:
         lines += [f"Reference: {reference['label']}: MAE {reference['mae']:.2f} deg, median {reference['median']:.2f} deg, "
-                  f"capture {reference['capture_seconds']:.1f} s, compute {reference['reconstruct_seconds']:.3f} s per scene.", ""]
+                  f"invalid {100 * reference['invalid_fraction']:.1f}% of the pixels, capture {reference['capture_seconds']:.1f} s, "
+                  f"compute {_fmt(reference['reconstruct_seconds'])} s per scene.", ""]
     lines += ["Median angular error (deg):", "", pivot("median", 2), "",
               "Capture time (s: M x exposure time, scaled by each method's exposure gain as stated above):", "", pivot("capture_seconds", 2), "",
-              "Compute time (s per scene: the reconstruction, as stated above):", "", pivot("reconstruct_seconds", 3), ""]
+              "Compute time (s per scene: the reconstruction, as stated above):", "", pivot("reconstruct_seconds", 2), ""]
     for count in counts:
         at_m = [row for row in rows if row["M"] == count]
         if not at_m:
             continue
         body = [[row["label"], row["kind"], _fmt(row["mae"]), _fmt(row["median"]), _fmt(100 * row["under_10"], 1), _fmt(100 * row["invalid_fraction"], 1),
-                 _fmt(row["capture_seconds"], 2), _fmt(row["reconstruct_seconds"], 3), _fmt(row["exposure"], 3), _fmt(row["cost_seconds"], 0)] for row in at_m]
+                 _fmt(row["capture_seconds"], 2), _fmt(row["reconstruct_seconds"], 2), _fmt(row["exposure"], 3), _fmt(row["cost_seconds"], 0)] for row in at_m]
         lines += [f"### M = {count}", "", _table(["method", "kind", "MAE (deg)", "median (deg)", "< 10 deg (%)", "invalid (%)", "capture (s)",
                                                  "compute (s/scene)", "exposure", "cost (s)"], body), ""]
     return lines
@@ -726,7 +751,7 @@ def _noise_section(results: dict, rows: list[dict]) -> list[str]:
     body = []
     for row in sorted(rows, key=lambda r: (r["M"], _KIND_ORDER.get(r["kind"], 9), r["label"])):
         key = (row["series"], row["M"])
-        body.append([row["label"], str(row["M"])] + [_fmt(per_noise[n][key]["mae"]) if key in per_noise[n] else "-" for n in noises])
+        body.append([row["label"], str(row["M"])] + [pivot_cell(per_noise[n][key], "mae", 2) if key in per_noise[n] else "-" for n in noises])
     return lines + [_table(["method", "M"] + [f"noise {n:g}" for n in noises], body), ""]
 
 
@@ -893,16 +918,18 @@ def _search_section(results: dict, out_dir: Path) -> list[str]:
         return []
     lines = ["## NLopt searches", "", "Training-scene objective (fixed pixel subset and noise draw), then test MAE at the default noise. "
              "The start is the family's default parameters with its edges softened to the search's sharpness (so that they "
-             "get gradients), which can score worse than the family's binary patterns in the tables above:", ""]
+             "get gradients), which can score worse than the family's binary patterns in the tables above. LN_BOBYQA spends "
+             "its first 2 P + 1 evaluations (P parameters) on points around the start before it steps:", ""]
     body = []
     for method in searches:
         info = method["info"]
         test = _evaluation(method, results["default_noise"])
-        trace = Path(info["trace_png"])
-        try:
-            trace = trace.resolve().relative_to(out_dir.resolve())
-        except ValueError:
-            pass
+        trace = Path(info["trace_png"])  # relative to the output folder when inside it (``compare.method_record``)
+        if trace.is_absolute():
+            try:
+                trace = trace.relative_to(out_dir.resolve())
+            except ValueError:
+                pass
         body.append([method["label"], str(method["M"]), str(info["evaluations"]), _fmt(info["start_mae"]), _fmt(info["best_mae"]),
                      _fmt(test["mae"]) if test else "-", _fmt(method["cost_seconds"], 0), info["stop_reason"], f"[trace]({trace.as_posix()})"])
     return lines + [_table(["search", "M", "evaluations", "start (train)", "best (train)", "test MAE", "cost (s)", "stop", "chart"], body), ""]
