@@ -155,11 +155,22 @@ def signals_held():
     try:
         yield
     finally:
-        for number in numbers:
-            signal.signal(number, previous[number])
+        _restore_handlers([(number, previous[number]) for number in numbers])
         for number in numbers:
             if number in pending:
                 signal.raise_signal(number)
+
+
+def _restore_handlers(handlers: list) -> None:
+    """Set each (signal, handler) in order, every one even if a signal arriving meanwhile makes a
+    restored handler raise (a SIGTERM handler calling sys.exit would leave SIGINT held for good)."""
+    import signal
+
+    if handlers:
+        try:
+            signal.signal(*handlers[0])
+        finally:
+            _restore_handlers(handlers[1:])
 
 
 STAGING_PREFIX = ".staging."

@@ -324,6 +324,8 @@ def simulate(
         exposure = rig.exposure if rig.exposure is not None else "auto"
     gain = None
     if isinstance(exposure, torch.Tensor):  # a scalar that carries its gradient (train.capture.exposure_with_gradient)
+        if exposure.dim() != 0 or not exposure.is_floating_point():
+            raise InputError(f"exposure: a tensor exposure must be a floating-point scalar, got shape {tuple(exposure.shape)} {exposure.dtype}")
         gain, exposure = exposure, float(exposure.detach())
     elif exposure != "auto":
         try:

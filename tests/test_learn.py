@@ -454,3 +454,26 @@ def test_train_writes_its_pattern_file_and_config_record_together(tmp_path, scen
     with pytest.raises(KeyboardInterrupt):
         train_patterns(dataclasses.replace(config, steps=2), out, progress=False, checkpoint_mode="fresh")
     assert {path.name: path.read_bytes() for path in (out, tmp_path / "a.config.json")} == before
+
+
+def test_held_signals_are_all_restored_when_a_restored_handler_raises(monkeypatch):
+    """A SIGTERM whose restored handler raises (sys.exit) while the handlers are put back must not
+    leave SIGINT held for good."""
+    import signal
+
+    from capture_sim.atomic import signals_held
+
+    original = signal.signal
+
+    def set_then_raise(number, handler):
+        previous = original(number, handler)
+        if number == signal.SIGTERM and handler is signal.SIG_DFL:  # the restore, then a signal arrives
+            raise SystemExit(143)
+        return previous
+
+    before = signal.getsignal(signal.SIGINT)
+    with pytest.raises(SystemExit):
+        with signals_held():
+            monkeypatch.setattr(signal, "signal", set_then_raise)
+    monkeypatch.undo()
+    assert signal.getsignal(signal.SIGINT) is before

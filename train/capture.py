@@ -22,8 +22,8 @@ def scene_exposure(pixels: ScenePixels, patterns: torch.Tensor) -> float:
 
 
 def exposure_with_gradient(pixels: ScenePixels, patterns: torch.Tensor) -> torch.Tensor:
-    """Auto exposure e = target / r* (``scene_exposure``'s value) as a scalar tensor that carries
-    its gradient: r* is the noise-free capture at the percentile, which depends on the patterns.
+    """Auto exposure e = target / r* (the value ``simulate`` computes, in float64) as a scalar
+    tensor that carries its gradient: r* is the noise-free capture at the percentile, which depends on the patterns.
     A brighter pattern set is exposed for less time, so its gain in signal over noise is mostly
     taken back; without this path a gradient sees only the gain.
 
@@ -32,15 +32,19 @@ def exposure_with_gradient(pixels: ScenePixels, patterns: torch.Tensor) -> torch
         patterns: (M, R, C, 3) set values in [0, 1], possibly requiring grad.
     """
     rig = pixels.rig
+    patterns = patterns.to(torch.promote_types(patterns.dtype, torch.float32))  # as simulate does
     emitted = display_emission(patterns, rig.backlight_flat(patterns.dtype), rig.gamma, rig.scale)  # (M, K, 3)
     with torch.no_grad():
         radiance = noise_free_radiance(emitted.detach(), pixels.transport)  # (M, N, 3)
         value, index = auto_exposure_at(radiance)
     if index is None:
-        return torch.tensor(value, dtype=emitted.dtype)  # a dark scene: auto exposure's fixed 1, no gradient
+        return torch.tensor(value, dtype=torch.float64)  # a dark scene: auto exposure's fixed 1, no gradient
     m, n, c = (int(i) for i in torch.unravel_index(torch.tensor(index), radiance.shape))
-    at_percentile = (emitted[m, :, c] * pixels.transport.matrix[c, :, n].to(emitted.dtype)).sum()
-    return AUTO_EXPOSURE_TARGET / at_percentile
+    at_percentile = (emitted[m, :, c].double() * pixels.transport.matrix[c, :, n].double()).sum()
+    gain = AUTO_EXPOSURE_TARGET / at_percentile
+    # The value is auto exposure's to the last bit (recomputing r* in another order rounds
+    # differently, and the objectives jump at changes that small); only the gradient is gain's.
+    return gain - gain.detach() + value
 
 
 def capture_scene(

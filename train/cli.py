@@ -338,7 +338,7 @@ def _file_stamp(path: Path) -> tuple[int, int] | None:
 
 def _search(args) -> None:
     from train.config_io import load_config
-    from train.search import SearchConfig, output_files, partial_trace_path, run_search
+    from train.search import SearchConfig, output_files, partial_trace_path, run_search, start_text
 
     args.earlier_partial = _file_stamp(partial_trace_path(args.out))  # for the Ctrl-C hint
     overrides = {
@@ -356,7 +356,7 @@ def _search(args) -> None:
     refuse_overwriting(output_files(args.out), [("--config file", args.config), *_scene_files(config.scenes)])
     summary = run_search(config, args.out, logdir=args.logdir)
     print(f"{summary['family']} M={summary['num_patterns']} {summary['algorithm']}: MAE {summary['start_mae']:.2f} "
-          f"(the family's defaults at sharpness {summary['sharpness']:g}) -> "
+          f"({start_text(summary['start'], summary['sharpness'])}) -> "
           f"{summary['best_mae']:.2f} deg in {summary['evaluations']} evaluations ({summary['stop_reason']}); trace {summary['trace_csv']}")
 
 

@@ -8,7 +8,8 @@ It is deterministic: every scene keeps one fixed subset of pixels (``pixels_per_
 fixed noise draw (generator seeded with ``config.seed * 1000 + scene index``) for every
 evaluation, so NLopt compares patterns, not noise draws. Gradient-based algorithms (LD_*) get the
 gradient of this value by autograd, auto exposure included (``train.capture.exposure_with_gradient``:
-without it, the on and off levels got gradients of the wrong sign, hundreds of times too large);
+without it, the on and off levels got gradients several to hundreds of times too large, in one
+measurement of the wrong sign);
 the angle is acos of the clamped cosine, as in training's uncapped 'angular' loss
 (``train.learn.normal_loss``), so the value differs from the MAE by < 0.1 degree. It is smooth only
 piecewise, and the gradient is that of the current piece: a pixel whose validity flag flips
@@ -425,8 +426,8 @@ class PatternObjective:
         losses, invalid, flagged = [], [], defaultdict(list)
         for index, (pixels, columns) in enumerate(zip(self.scenes, self.columns)):
             noise = torch.Generator().manual_seed(self.seed * 1000 + index)
-            # The same value either way; with a gradient, auto exposure's share in it too (a
-            # brighter set is exposed for less time, which takes back most of its gain).
+            # The same value either way (bit for bit); with a gradient, auto exposure's share in it
+            # too (a brighter set is exposed for less time, which takes back most of its gain).
             exposure = exposure_with_gradient(pixels, patterns) if patterns.requires_grad and torch.is_grad_enabled() else "auto"
             capture = capture_scene(pixels, patterns, self.noise_scale, exposure, noise, columns)
             points = pixels.points if columns is None else pixels.points[columns]
@@ -522,6 +523,11 @@ def _remove_file(path: Path) -> None:
         path.unlink()
 
 
+def start_text(start: str, sharpness: float) -> str:
+    """'the family's default parameters at sharpness 4': what a search's start MAE measures."""
+    return f"the family's {start} parameters at sharpness {sharpness:g}"
+
+
 def _search_meta(config: SearchConfig, rig, names: list[str], start, found, scenes: list) -> dict:
     """The pattern file's meta of a finished search (``found``: ``minimise``'s result; ``scenes``:
     the prepared search scenes)."""
@@ -540,6 +546,7 @@ def _search_meta(config: SearchConfig, rig, names: list[str], start, found, scen
         "stop_reason": found.stop_reason,
         "seconds": found.seconds,
         "sharpness": config.sharpness,
+        "start": config.start,
         "objective": (
             f"mean over {len(scenes)} training scenes of the mean angular error (deg) of solve_ps over "
             f"{'all' if not config.pixels_per_scene else f'at most {config.pixels_per_scene} fixed'} pixels per scene, "
@@ -619,7 +626,7 @@ def _search(config: SearchConfig, out: Path, logdir: Path | None, progress: bool
         meta = _search_meta(config, rig, names, start, found, scenes)
         chart = trace_chart_path(out)
         caption = (f"{meta['objective']}; {len(found.history)} evaluations, stop: {found.stop_reason}; "
-                   f"start (the family's defaults at sharpness {config.sharpness:g}) {found.start_value:.2f} deg, best {found.best_value:.2f} deg")
+                   f"start ({start_text(config.start, config.sharpness)}) {found.start_value:.2f} deg, best {found.best_value:.2f} deg")
         # The four outputs replace an earlier search's together (the pattern file last).
         with staged_files(out.parent, last=(out.name,)) as staging:
             save_patterns(staging / out.name, objective.patterns(found.best_x).numpy(), meta)
