@@ -155,22 +155,19 @@ def signals_held():
     try:
         yield
     finally:
-        _restore_handlers([(number, previous[number]) for number in numbers])
+        # Inline, not a loop or a call: a handler restored first may raise when its signal comes
+        # (sys.exit on SIGTERM), and Python runs handlers between any two instructions, a
+        # function's entry included; the second restore must still happen.
+        restore = [(number, previous[number]) for number in numbers]
+        try:
+            if restore:
+                signal.signal(*restore[0])
+        finally:
+            if len(restore) > 1:
+                signal.signal(*restore[1])
         for number in numbers:
             if number in pending:
                 signal.raise_signal(number)
-
-
-def _restore_handlers(handlers: list) -> None:
-    """Set each (signal, handler) in order, every one even if a signal arriving meanwhile makes a
-    restored handler raise (a SIGTERM handler calling sys.exit would leave SIGINT held for good)."""
-    import signal
-
-    if handlers:
-        try:
-            signal.signal(*handlers[0])
-        finally:
-            _restore_handlers(handlers[1:])
 
 
 STAGING_PREFIX = ".staging."

@@ -821,7 +821,31 @@ def test_report_reader_fixes():
     rows = aggregate_rows(results, 0.5)
     assert "| a | 2 | 10.00 (all invalid) | 20.00 |" in "\n".join(_noise_section(results, rows))
     by_series = {row["series"]: row for row in rows}
-    assert by_series["a"]["reconstruct_seconds"] == pytest.approx(np.median([0.04, 0.5, 0.04]))
+    assert by_series["a"]["reconstruct_seconds"] == pytest.approx(np.median([0.04, 0.5]))  # test scenes only, every noise
+    # Verdicts call a ratio within TIE_MARGIN of 1 even; timings keep two significant digits.
+    from train.report import _seconds, _timing_text, noise_verdict
+
+    assert noise_verdict(0.995, 1.005) == "learned patterns are no better than the best heuristic at either end"
+    assert noise_verdict(0.995, 0.9) == "learned patterns overtake the best heuristic"
+    assert [_seconds(v) for v in (0.0044, 0.009, 0.15, 1.234, None)] == ["0.0044", "0.009", "0.15", "1.2", "-"]
+    assert _timing_text({"config": {"eval_workers": 2}, "threads": 2}) == (
+        ", single-threaded in up to 2 worker processes sharing the machine (on 2 threads when one set is evaluated)")
     results["methods"][2]["info"] = {"same_patterns_as": results["methods"][1]["id"]}
     text = "\n".join(_accuracy_section(results, rows))
     assert "Evaluated once, so their rows repeat the other's numbers: c holds the same patterns as b at M = 2." in text
+
+
+def test_search_trace_links_resolve_from_the_report(tmp_path, monkeypatch):
+    """A trace chart recorded relative to the output folder links as is; one recorded by an older
+    version relative to the working directory links relative to the report too."""
+    from train.report import _search_section
+
+    out_dir = tmp_path / "runs" / "x"
+    (out_dir / "patterns").mkdir(parents=True)
+    (out_dir / "patterns" / "s.trace.png").write_bytes(b"png")
+    monkeypatch.chdir(tmp_path)
+    for recorded in ("patterns/s.trace.png", "runs/x/patterns/s.trace.png", str(out_dir / "patterns" / "s.trace.png")):
+        method = {"kind": "search", "label": "s + LN_BOBYQA", "M": 2, "cost_seconds": 1.0, "evaluations": [{"noise_scale": 1.0, "mae": 9.0}],
+                  "info": {"evaluations": 3, "start_mae": 10.0, "best_mae": 9.5, "stop_reason": "maxeval reached", "trace_png": recorded}}
+        text = "\n".join(_search_section({"methods": [method], "default_noise": 1.0}, out_dir))
+        assert "[trace](patterns/s.trace.png)" in text, recorded

@@ -315,7 +315,7 @@ def evaluate_specular_free(methods: list[Method], scenes, config: CompareConfig,
 
 def method_record(method: Method, out_dir: Path) -> dict:
     """JSON record of one evaluated method (the pattern file's and a search trace chart's paths
-    relative to ``out_dir`` when inside it, so that the record reads the same from anywhere)."""
+    relative to ``out_dir`` when inside it; others as given)."""
     def inside(path):
         try:
             return str(Path(path).resolve().relative_to(out_dir.resolve()))
