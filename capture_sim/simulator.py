@@ -102,13 +102,18 @@ def light_transport(olat, mask=None, dtype=torch.float32) -> LightTransport:
         check_array("mask", mask_t, (height, width))
         index = torch.nonzero(mask_t.reshape(-1), as_tuple=False).squeeze(1)
     matrix = torch.empty((3, num_lights, index.numel()), dtype=dtype)
+    lowest = 0.0
     for k in range(num_lights):
         # Gathering rows first then transposing is ~2x faster than a strided transpose-copy.
-        matrix[:, k, :] = source[k].reshape(-1, 3)[index].T
+        rows = source[k].reshape(-1, 3)[index]
+        matrix[:, k, :] = rows.T
+        # Per light, not one min over the whole matrix: after that 540 MB reduction the solver's
+        # full-frame benchmark ran 25% slower in half of the runs (measured, cause unknown).
+        lowest = min(lowest, float(rows.min())) if rows.numel() else lowest
     if not bool(torch.isfinite(matrix).all()):
         raise InputError("olat: contains NaN or infinite values")
-    if matrix.numel() and float(matrix.min()) < 0:
-        raise InputError(f"olat: has negative radiance (min {float(matrix.min()):g}); radiance per unit display intensity is >= 0")
+    if lowest < 0:
+        raise InputError(f"olat: has negative radiance (min {lowest:g}); radiance per unit display intensity is >= 0")
     return LightTransport(matrix, index, height, width)
 
 

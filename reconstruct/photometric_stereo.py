@@ -251,7 +251,7 @@ def finalise(normal, albedo, condition, residual, flags: dict, field_: LightFiel
     flags["ill_conditioned"] = condition > config.condition_threshold
     flags["back_facing"] = facing <= 0
     flags["bad_geometry"] = field_.bad
-    valid = ~torch.stack([flags[name] for name in INVALIDATING_FLAGS]).any(0)
+    valid = ~(flags["dark"] | flags["ill_conditioned"] | flags["back_facing"] | flags["bad_geometry"])  # INVALIDATING_FLAGS
     # Marks on estimates that are kept: an invalid pixel's normal is replaced below anyway.
     flags["poor_fit"] = valid & (residual > config.residual_threshold)
     flags["grazing"] = valid & (facing < config.grazing_cos)
