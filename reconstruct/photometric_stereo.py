@@ -468,8 +468,8 @@ def solve_ps(captures, emission, points, lights, falloff, config: PSConfig = PSC
         zero where the value is far from one: ``NEAR_FIXED_POINT``);
         no gradient flows to points or lights. The albedo is in the emission's units, so its
         gradient grows as 1 / (emission peak)^2: past float32's range for peaks below about 1e-19
-        (the normal's stays finite; use float64, or emission in units near 1, to differentiate
-        the albedo there).
+        (the normal's stays finite; use float64, down to peaks of about 1e-154, or emission in
+        units near 1, to differentiate the albedo there).
 
     Raises:
         InputError: wrong shapes, non-finite inputs, negative emission (captures may be slightly
