@@ -272,8 +272,8 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
         if hashlib.sha256(path.read_bytes()).hexdigest() != frame.get("sha256"):
             raise InputError(f"{frames_dir}: frame {frame['file']} does not match its SHA-256 in the manifest")
         # Every frame the rig plays, not only the pattern frames read below (a header is 26 bytes).
-        if png_header(path) != (height, width, bit_depth, _RGB):
-            found = png_header(path)
+        found = png_header(path)
+        if found != (height, width, bit_depth, _RGB):
             shown = "not a PNG" if found is None else f"{found[0]} x {found[1]} at {found[2]} bits, colour type {found[3]}"
             raise InputError(f"{frames_dir}: frame {frame['file']} is {shown}; the manifest says {height} x {width} RGB at {bit_depth} bits")
     listed_files = {frame["file"] for frame in manifest["frames"]}

@@ -15,10 +15,16 @@ def scene_exposure(pixels: ScenePixels, patterns: torch.Tensor) -> float:
         pixels: the prepared scene.
         patterns: (M, R, C, 3) set values in [0, 1].
     """
-    rig = pixels.rig
     with torch.no_grad():
-        emitted = display_emission(patterns, rig.backlight_flat(patterns.dtype), rig.gamma, rig.scale)
-        return auto_exposure(noise_free_radiance(emitted, pixels.transport))
+        return auto_exposure(noise_free_radiance(_emitted(pixels, patterns), pixels.transport))
+
+
+def _emitted(pixels: ScenePixels, patterns: torch.Tensor) -> torch.Tensor:
+    """(M, K, 3) emission of the scene's display, from patterns promoted to float32 at least, as
+    ``simulate`` does."""
+    rig = pixels.rig
+    patterns = patterns.to(torch.promote_types(patterns.dtype, torch.float32))
+    return display_emission(patterns, rig.backlight_flat(patterns.dtype), rig.gamma, rig.scale)
 
 
 def exposure_with_gradient(pixels: ScenePixels, patterns: torch.Tensor) -> torch.Tensor:
@@ -31,9 +37,7 @@ def exposure_with_gradient(pixels: ScenePixels, patterns: torch.Tensor) -> torch
         pixels: the prepared scene (the pixels auto exposure looks at).
         patterns: (M, R, C, 3) set values in [0, 1], possibly requiring grad.
     """
-    rig = pixels.rig
-    patterns = patterns.to(torch.promote_types(patterns.dtype, torch.float32))  # as simulate does
-    emitted = display_emission(patterns, rig.backlight_flat(patterns.dtype), rig.gamma, rig.scale)  # (M, K, 3)
+    emitted = _emitted(pixels, patterns)  # (M, K, 3)
     with torch.no_grad():
         radiance = noise_free_radiance(emitted.detach(), pixels.transport)  # (M, N, 3)
         value, index = auto_exposure_at(radiance)

@@ -27,7 +27,8 @@ CHARTS = {
 }
 """Chart name -> file name in the output folder."""
 
-_ROW_METRICS = ("mae", "median", "under_10", "invalid_fraction", "exposure", "capture_seconds", "compute_seconds", "reconstruct_seconds")
+_ROW_METRICS = ("mae", "median", "under_10", "invalid_fraction", "exposure", "capture_seconds", "compute_seconds")
+"""Means over a row's seeds at one noise level (``reconstruct_seconds`` is a median: ``aggregate_rows``)."""
 _KIND_ORDER = {"learned": 0, "rerender": 1, "search": 2, "external": 3, "heuristic": 4, "reference": 5}
 _KIND_STYLE = {
     "learned": dict(color="tab:red", marker="o", linewidth=2.5, zorder=4),  # above the heuristics' markers
@@ -72,14 +73,12 @@ def aggregate_rows(results: dict, noise: float, specular_free: bool = False) -> 
         row = {"series": series, "kind": first["kind"], "M": count, "seeds": len(members),
                "label": "learned" if first["kind"] == "learned" else first["label"]}  # seeds differ per M: said per cell
         for key in _ROW_METRICS:
-            if key == "reconstruct_seconds":
-                # Wall times of worker processes that share the cores swing by 2x: the median of
-                # the methods' test-scene evaluations at every noise level is steadier than one.
-                # Absent from results of older versions ('-' in the tables).
-                times = [e.get(key, math.nan) for method, _ in members for e in method["evaluations"]]
-                row[key] = float(np.median(times)) if times else math.nan
-            else:
-                row[key] = float(np.mean([evaluation[key] for _, evaluation in members]))
+            row[key] = float(np.mean([evaluation[key] for _, evaluation in members]))
+        # Wall times of worker processes that share the cores swing by 2x: the median of the
+        # methods' test-scene evaluations at every noise level is steadier than one of them.
+        # Absent from results of older versions ('-' in the tables).
+        times = [evaluation.get("reconstruct_seconds", math.nan) for method, _ in members for evaluation in method["evaluations"]]
+        row["reconstruct_seconds"] = float(np.median(times)) if times else math.nan
         row["mae_std"] = float(np.std([evaluation["mae"] for _, evaluation in members]))
         costs = [method["cost_seconds"] for method, _ in members if method["cost_seconds"] is not None]
         row["cost_seconds"] = float(np.mean(costs)) if costs else None
@@ -497,8 +496,13 @@ def _solver_text(results: dict) -> str:
 
 
 def _pixels_text(results: dict) -> str:
-    count = results.get("config", {}).get("eval_pixels_per_scene", 0)
+    count = _pixels_per_scene(results)
     return f"a fixed random subset of at most {count} masked pixels per scene (the same for every method)" if count else "every masked pixel"
+
+
+def _pixels_per_scene(results: dict) -> int:
+    """The evaluation's pixels per test scene (0: every masked pixel)."""
+    return results.get("config", {}).get("eval_pixels_per_scene", 0)
 
 
 def _timing_text(results: dict) -> str:
@@ -510,7 +514,7 @@ def _timing_text(results: dict) -> str:
 
 
 def _pixels_short(results: dict) -> str:
-    count = results.get("config", {}).get("eval_pixels_per_scene", 0)
+    count = _pixels_per_scene(results)
     return f"at most {count} pixels" if count else "every masked pixel"
 
 

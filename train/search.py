@@ -34,7 +34,6 @@ import io
 import math
 import time
 import warnings
-from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -414,7 +413,8 @@ class PatternObjective:
         self.invalid_fractions: list[float] = []
         """Per scene, the share of pixels the solver flagged invalid at the latest evaluation."""
         self.flag_shares: dict[str, float] = {}
-        """Per solver flag, the share of the search pixels carrying it at the latest evaluation."""
+        """Per solver flag, the share of the search pixels carrying it at the latest evaluation
+        that left every pixel of every scene invalid."""
 
     def patterns(self, vector: np.ndarray | torch.Tensor) -> torch.Tensor:
         """(M, R, C, 3) float32 patterns of a (P,) parameter vector (differentiable in a tensor)."""
@@ -423,7 +423,7 @@ class PatternObjective:
 
     def value(self, patterns: torch.Tensor) -> torch.Tensor:
         """Scalar mean over scenes of the mean angle (degrees) over each scene's pixel subset."""
-        losses, invalid, flagged = [], [], defaultdict(list)
+        losses, invalid, flags = [], [], []
         for index, (pixels, columns) in enumerate(zip(self.scenes, self.columns)):
             noise = torch.Generator().manual_seed(self.seed * 1000 + index)
             # The same value either way (bit for bit); with a gradient, auto exposure's share in it
@@ -435,10 +435,10 @@ class PatternObjective:
             result = solve_ps(capture.captures, capture.emission, points, pixels.lights(), pixels.rig.falloff, self.ps_config)
             losses.append(normal_loss(result.normal, truth, "angular"))
             invalid.append(float((~result.valid).float().mean()) if result.valid.numel() else 1.0)
-            for name, flag in result.flags.items():
-                flagged[name].append(flag.detach())
+            flags.append(result.flags)
         self.invalid_fractions = invalid
-        self.flag_shares = {name: float(torch.cat(flags).float().mean()) if sum(f.numel() for f in flags) else 0.0 for name, flags in flagged.items()}
+        if invalid and min(invalid) == 1.0:  # only the all-invalid warning reads them
+            self.flag_shares = {name: float(torch.cat([f[name] for f in flags]).float().mean()) for name in flags[0]}
         return torch.rad2deg(torch.stack(losses).mean())
 
     def __call__(self, vector: np.ndarray, need_gradient: bool) -> tuple[float, np.ndarray | None]:
