@@ -25,7 +25,7 @@ from train.compare_config import (
     rig_exposure_ms,
 )
 from train.compare_methods import Method, collect_methods, external_methods
-from train.report import CHARTS, aggregate_rows, pivot_cell, summary_tables
+from train.report import CHARTS, _seconds, aggregate_rows, pivot_cell, summary_tables
 
 SIZE = (24, 29)
 REPO = repository_root(Path(__file__).resolve().parent.parent / "configs" / "compare" / "demo.toml")
@@ -286,6 +286,7 @@ def test_summary_tables_against_plain_computation():
     assert pivot_cell(rows["a"], "mae", 2) == "20.00"
     assert pivot_cell(dict(rows["a"], invalid_fraction=1.0), "mae", 2) == "20.00 (all invalid)"
     assert pivot_cell(dict(rows["a"], invalid_fraction=1.0), "compute_seconds", 1) == "0.1"
+    assert pivot_cell(rows["a"], "reconstruct_seconds", None) == "0.04"  # a timing to two significant digits, not "0"
     summary = summary_tables(results)
     by_noise = {c["noise_scale"]: c for c in summary["learned_vs_heuristic"]}
     assert by_noise[0.5]["best_heuristic"] == "a" and by_noise[0.5]["ratio"] == pytest.approx(8.5 / 10.0)
@@ -370,6 +371,10 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
         assert text in report
     for file_name in CHARTS.values():
         assert (tmp_path / file_name).stat().st_size > 0 and f"({file_name})" in report
+    # The method x M compute-time table shows each row's median reconstruction time, as the per-M tables do.
+    compute_table = report.split("Compute time (s per scene")[1].split("\n\n")[1]
+    learned_row = next(row for row in aggregate_rows(results, 1.0) if row["kind"] == "learned")
+    assert f"| {learned_row['label']} | learned | {_seconds(learned_row['reconstruct_seconds'])} |" in compute_table
 
     assert results["specular_free"] == {"enabled": True}
     for method in results["methods"]:

@@ -631,12 +631,13 @@ def specular_free_section(results: dict, summary: dict, rows: list[dict]) -> lis
     return lines + [""]
 
 
-def pivot_cell(row: dict, key: str, digits: int) -> str:
-    """One cell of a method x M table: the row's value, and how many seeds it averages when more
+def pivot_cell(row: dict, key: str, digits: int | None) -> str:
+    """One cell of a method x M table: the row's value (to ``digits`` decimals, or as a timing to
+    two significant digits when ``digits`` is None), and how many seeds it averages when more
     than one (a series can average several seeds at one M and one at another). An error where
     every pixel was invalid is marked: it measures the default normal, not a reconstruction."""
     note = " (all invalid)" if key in ("mae", "median") and all_invalid(row) else ""
-    return _fmt(row[key], digits) + note + (f" (mean of {row['seeds']} seeds)" if row["seeds"] > 1 else "")
+    return (_seconds(row[key]) if digits is None else _fmt(row[key], digits)) + note + (f" (mean of {row['seeds']} seeds)" if row["seeds"] > 1 else "")
 
 
 CHART_TITLES = {"mae_vs_M": "MAE against M", "mae_vs_capture_time": "MAE against capture time", "mae_vs_compute_time": "Speed-accuracy (compute time)",
@@ -732,7 +733,7 @@ def _accuracy_section(results: dict, rows: list[dict]) -> list[str]:
     ordered = sorted(series_rows, key=lambda s: (_KIND_ORDER.get(labels[s][0], 9), labels[s][1]))
     reference = next((row for row in rows if row["kind"] == "reference"), None)
 
-    def pivot(key: str, digits: int) -> str:
+    def pivot(key: str, digits: int | None) -> str:
         body = [[labels[s][1], labels[s][0]] + [pivot_cell(series_rows[s][m], key, digits) if m in series_rows[s] else "-" for m in counts] for s in ordered]
         return _table(["method", "kind"] + [f"M = {m}" for m in counts], body)
 
@@ -749,7 +750,7 @@ def _accuracy_section(results: dict, rows: list[dict]) -> list[str]:
                   f"compute {_seconds(reference['reconstruct_seconds'])} s per scene.", ""]
     lines += ["Median angular error (deg):", "", pivot("median", 2), "",
               "Capture time (s: M x exposure time, scaled by each method's exposure gain as stated above):", "", pivot("capture_seconds", 2), "",
-              "Compute time (s per scene: the reconstruction, as stated above):", "", pivot("reconstruct_seconds", 0), ""]
+              "Compute time (s per scene: the reconstruction, as stated above):", "", pivot("reconstruct_seconds", None), ""]
     for count in counts:
         at_m = [row for row in rows if row["M"] == count]
         if not at_m:
