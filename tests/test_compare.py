@@ -712,6 +712,23 @@ def test_cost_chart_crosses_out_all_invalid_methods_and_merges_coincident_labels
     assert ALL_INVALID_LABEL in [text.get_text() for text in ax.get_legend().get_texts()]
 
 
+def test_mae_chart_close_up_spans_the_best_methods_and_leaves_out_all_invalid_ones():
+    """The close-up panel runs from just below the lowest MAE to 1.4 x the worst per-M best, with
+    the OLAT reference line when near; an all-invalid row (MAE of the placeholder) does not stretch it."""
+    from train.report import chart_mae_vs_patterns, close_up_limits
+
+    def row(kind, count, mae, invalid=0.0):
+        return {"kind": kind, "series": f"{kind}{count}{mae}", "label": kind, "M": count, "mae": mae, "mae_std": 0.0, "invalid_fraction": invalid}
+
+    rows = [row("learned", 2, 10.0), row("learned", 4, 8.0), row("heuristic", 2, 30.0), row("heuristic", 4, 40.0, invalid=1.0)]
+    assert close_up_limits(rows) == pytest.approx((0.95 * 8.0, 1.4 * 10.0))
+    assert close_up_limits(rows + [row("reference", 144, 16.0)]) == pytest.approx((0.95 * 8.0, 1.05 * 16.0))
+    assert close_up_limits(rows + [row("reference", 144, 50.0)]) == pytest.approx((0.95 * 8.0, 1.4 * 10.0))  # too far: left out
+    assert close_up_limits([row("heuristic", 2, 40.0, invalid=1.0)]) is None
+    fig = chart_mae_vs_patterns(rows, "caption")
+    assert fig.axes[1].get_ylim() == pytest.approx((0.95 * 8.0, 1.4 * 10.0))
+
+
 def test_summary_states_the_answer_first_against_plain_computation():
     """Per M, the most accurate method and the learned / best-heuristic ratio with the test scenes
     the learned patterns win (mean over seeds per scene); the evidence behind them."""

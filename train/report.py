@@ -273,27 +273,47 @@ def _label_counts(ax, points: list[tuple[float, float, int]]) -> None:
         ax.annotate("M=" + ",".join(map(str, sorted(counts))), (x, y), textcoords="offset points", xytext=(4, 3), fontsize=6)
 
 
+def close_up_limits(rows: list[dict], headroom: float = 1.4) -> tuple[float, float] | None:
+    """The MAE range (deg) of the close-up panel of ``chart_mae_vs_patterns``: from just below the
+    lowest MAE to ``headroom`` times the largest of the per-M lowest MAEs (the OLAT reference line
+    included when it lies within twice that), all-invalid rows left out. None without a valid row."""
+    valid = [row for row in rows if not all_invalid(row) and math.isfinite(row["mae"])]
+    best_per_m = [min(row["mae"] for row in valid if row["M"] == count) for count in {row["M"] for row in valid if row["kind"] != "reference"}]
+    if not best_per_m:
+        return None
+    high = headroom * max(best_per_m)
+    reference = [row["mae"] for row in valid if row["kind"] == "reference" and row["mae"] < 2 * high]
+    high = max([high] + [1.05 * value for value in reference])
+    return 0.95 * min(best_per_m + reference), high
+
+
 def chart_mae_vs_patterns(rows: list[dict], caption: str):
-    """MAE (deg) against M, one line per method; the OLAT reference as a horizontal line."""
-    fig, ax = plt.subplots(figsize=(9.0, 4.8))
-    for (kind, label, series), values in _series(rows).items():
-        if kind == "reference":
-            ax.axhline(values[0]["mae"], color="black", linestyle="--", linewidth=1, label=f"{values[0]['label']}")
-            continue
-        counts = [row["M"] for row in values]
-        # An all-invalid point measures the placeholder normal: crossed out below, and the line
-        # breaks there instead of joining it to real reconstructions.
-        maes = [math.nan if all_invalid(row) else row["mae"] for row in values]
-        errors = [row["mae_std"] for row in values]
-        ax.errorbar(counts, maes, yerr=errors if kind == "learned" else None, label=label, capsize=3, **_style(kind, series))
-    _cross_out(ax, [(row["M"], row["mae"]) for row in rows if row["kind"] != "reference" and all_invalid(row)])
+    """MAE (deg) against M, one line per method; the OLAT reference as a horizontal line. Two
+    panels: every method, and a close-up of the best ones (``close_up_limits``), which the
+    full range squeezes into a few millimetres when some methods fail."""
+    limits = close_up_limits(rows)
+    fig, axes = plt.subplots(1, 2, figsize=(12.5, 4.8))
     counts = sorted({row["M"] for row in rows if row["kind"] != "reference"})
-    ax.set_xticks(counts)
-    ax.set_xlabel("number of patterns M (images)")
-    ax.set_ylabel("mean angular error (deg)")
-    ax.set_title("Normal error against the number of patterns")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    for ax in axes:
+        for (kind, label, series), values in _series(rows).items():
+            if kind == "reference":
+                ax.axhline(values[0]["mae"], color="black", linestyle="--", linewidth=1, label=f"{values[0]['label']}")
+                continue
+            # An all-invalid point measures the placeholder normal: crossed out below, and the line
+            # breaks there instead of joining it to real reconstructions.
+            maes = [math.nan if all_invalid(row) else row["mae"] for row in values]
+            errors = [row["mae_std"] for row in values]
+            ax.errorbar([row["M"] for row in values], maes, yerr=errors if kind == "learned" else None, label=label, capsize=3, **_style(kind, series))
+        _cross_out(ax, [(row["M"], row["mae"]) for row in rows if row["kind"] != "reference" and all_invalid(row)])
+        ax.set_xticks(counts)
+        ax.set_xlabel("number of patterns M (images)")
+        ax.set_ylabel("mean angular error (deg)")
+        ax.grid(alpha=0.3)
+    axes[0].set_title("Normal error against the number of patterns")
+    if limits is not None:
+        axes[1].set_ylim(*limits)
+    axes[1].set_title("Close-up of the most accurate methods")
+    axes[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     _caption(fig, caption)
     fig.tight_layout()
     return fig
