@@ -13,6 +13,7 @@ from capture_sim.atomic import strict_json
 from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import load_rig
 from capture_sim.synth import write_scene_set
+from reconstruct.photometric_stereo import FLAG_NAMES
 from patterns.families import make_patterns
 from patterns.io import load_patterns
 from train.compare import first_with_same_patterns, run_compare, run_demo
@@ -160,8 +161,10 @@ def test_published_initial_patterns_are_recognised_as_families():
 def test_capture_time_is_M_exposures_scaled_by_the_gain_over_all_white():
     from train.compare import SUMMARY_METRICS, summarise
 
-    scenes = [{**{key: 1.0 for key in SUMMARY_METRICS}, "name": name, "exposure": gain} for name, gain in (("a", 0.02), ("b", 0.3))]
+    scenes = [{**{key: 1.0 for key in SUMMARY_METRICS}, "name": name, "exposure": gain, "flagged": {"dark": dark}}
+              for name, gain, dark in (("a", 0.02, 0.5), ("b", 0.3, 0.0))]
     summary = summarise(scenes, 4, 440.0, [0.01, 0.1])
+    assert summary["flagged"] == {"dark": 0.25}  # the scene mean of each flag's share
     # 4 images x 0.44 s x (2 and 3 times the all-white gain), averaged over the two scenes.
     assert summary["capture_seconds"] == pytest.approx(4 * 0.44 * (2 + 3) / 2)
     assert [scene["capture_seconds"] for scene in summary["scenes"]] == pytest.approx([4 * 0.44 * 2, 4 * 0.44 * 3])
@@ -349,6 +352,7 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
             assert np.isfinite(evaluation[key])
         # The report's compute time is the reconstruction's, a part of simulation plus reconstruction.
         assert 0 < evaluation["reconstruct_seconds"] < evaluation["compute_seconds"]
+        assert set(evaluation["flagged"]) == set(FLAG_NAMES) and all(0 <= share <= 1 for share in evaluation["flagged"].values())
         assert [scene["name"] for scene in evaluation["scenes"]] == results["test_scenes"]
         if method["kind"] == "reference":
             continue  # its gain is in other units (test_olat_reference_and_olat_patterns_take_the_same_capture_time)
@@ -727,6 +731,25 @@ def test_mae_chart_close_up_spans_the_best_methods_and_leaves_out_all_invalid_on
     assert close_up_limits([row("heuristic", 2, 40.0, invalid=1.0)]) is None
     fig = chart_mae_vs_patterns(rows, "caption")
     assert fig.axes[1].get_ylim() == pytest.approx((0.95 * 8.0, 1.4 * 10.0))
+
+
+def test_families_section_says_what_each_family_is_and_where_every_pixel_was_invalid():
+    from train.report import families_section
+
+    def method(series, count, invalid, flagged=None):
+        evaluation = {"noise_scale": 1.0, "mae": 40.0, "invalid_fraction": invalid, **({"flagged": flagged} if flagged else {})}
+        return {"kind": "heuristic", "series": series, "M": count, "evaluations": [evaluation]}
+
+    results = {"default_noise": 1.0, "methods": [
+        method("mono_gradient", 2, 1.0, {"ill_conditioned": 1.0, "back_facing": 0.4, "grazing": 0.0}), method("mono_gradient", 4, 0.1),
+        method("tri_complementary", 2, 0.05), method("gray_noise", 4, 1.0)]}  # gray_noise: a record without flags
+    text = "\n".join(families_section(results))
+    assert "- mono_gradient: grey linear ramps" in text and "Every pixel invalid at M = 2 (flagged ill_conditioned: too few or too similar captures)." in text
+    assert "- tri_complementary: R/G/B halves" in text and text.count("Every pixel invalid") == 2
+    assert "- gray_noise: 0.5 grey" in text and "Every pixel invalid at M = 4." in text
+    assert "three independent lighting directions" in text
+    assert families_section({"default_noise": 1.0, "methods": [method("mono_gradient", 4, 0.1)]})[-2].startswith("- mono_gradient")  # no failure: no explanation
+    assert families_section({"default_noise": 1.0, "methods": []}) == []
 
 
 def test_summary_states_the_answer_first_against_plain_computation():

@@ -79,13 +79,15 @@ def summarise(scene_metrics: list[dict], num_patterns: int, exposure_ms: float, 
         dict: every ``SUMMARY_METRICS`` entry averaged over scenes (``seconds`` renamed
         ``compute_seconds``: simulation plus reconstruction wall time per scene;
         ``reconstruct_seconds``: the reconstruction's alone, the compute time the report charts),
-        ``capture_seconds`` (the scene mean of M x exposure_ms x e / e_white, in seconds), and the
+        ``capture_seconds`` (the scene mean of M x exposure_ms x e / e_white, in seconds),
+        ``flagged`` (flag name -> the scene mean of the share of pixels carrying it), and the
         per-scene values under ``scenes``.
     """
     summary = {key: float(np.mean([metrics[key] for metrics in scene_metrics])) for key in SUMMARY_METRICS}
     summary["compute_seconds"] = summary.pop("seconds")
     captures = [num_patterns * exposure_ms / 1000.0 * metrics["exposure"] / white for metrics, white in zip(scene_metrics, white_exposures, strict=True)]
     summary["capture_seconds"] = float(np.mean(captures))
+    summary["flagged"] = {name: float(np.mean([metrics["flagged"][name] for metrics in scene_metrics])) for name in scene_metrics[0]["flagged"]}
     summary["scenes"] = [{**{key: metrics[key] for key in ("name", "mae", "median", "invalid_fraction", "exposure", "seconds", "reconstruct_seconds")}, "capture_seconds": capture}
                          for metrics, capture in zip(scene_metrics, captures)]
     return summary

@@ -15,6 +15,7 @@ import numpy as np
 
 from capture_sim.atomic import write_text
 from patterns.families import FAMILIES, PRESET_LEVELS
+from reconstruct.photometric_stereo import INVALIDATING_FLAGS
 from train.figures import plt, save_figure
 
 CHARTS = {
@@ -562,6 +563,45 @@ def _measurement_caption(results: dict) -> str:
     )
 
 
+def _main_cause(flag_shares: dict[str, float]) -> str:
+    """'ill_conditioned: too few or too similar captures': the invalidating flag on most pixels."""
+    share, name = max((share, name) for name, share in flag_shares.items() if name in INVALIDATING_FLAGS)
+    return f"{name}: {INVALIDATING_FLAGS[name]}"
+
+
+def families_section(results: dict) -> list[str]:
+    """The heuristic families compared, one line each: what its patterns are and, where every
+    pixel was invalid at the default noise, at which M and the flag on most of them (results of
+    older versions carry no flags: only the M values are given)."""
+    default = results["default_noise"]
+    failed: dict = defaultdict(list)
+    names = []
+    for method in results["methods"]:
+        if method["kind"] != "heuristic":
+            continue
+        names += [method["series"]] if method["series"] not in names else []
+        evaluation = _evaluation(method, default)
+        if evaluation is not None and evaluation["invalid_fraction"] >= 1.0:
+            failed[method["series"]].append((method["M"], evaluation.get("flagged")))
+    if not names:
+        return []
+    lines = ["## The heuristic families", ""]
+    for name in names:
+        family = FAMILIES.get(name)
+        text = f"- {name}: {family.summary if family else 'not a family of this version'}."
+        if failed[name]:
+            counts = ", ".join(str(count) for count, _ in sorted(failed[name], key=lambda item: item[0]))
+            causes = {_main_cause(flagged) for _, flagged in failed[name] if flagged}
+            text += f" Every pixel invalid at M = {counts}" + (f" (flagged {' or '.join(sorted(causes))})" if causes else "") + "."
+        lines.append(text)
+    if any(failed.values()):
+        lines += ["", "A pixel needs three independent lighting directions to fix its normal. A grey set (the same light in R, G and B) "
+                  "gives one independent equation per pattern, so two grey patterns cannot fix a normal; near-identical patterns (gray_noise: "
+                  "0.5 grey with 1% noise, the published learning start) are ill-conditioned at any M. The MAE of such a set measures "
+                  "the placeholder normal."]
+    return lines + [""]
+
+
 TIE_MARGIN = 0.01
 """In the report's verdicts (noise trend, specular reflection), learned / best-heuristic ratios
 within this of 1 are even, not a win or a loss: the test sets are a few scenes, and a heuristic
@@ -686,6 +726,7 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict, into: Path) -
     lines = ["# Pattern comparison", ""]
     lines += summary_section(results, summary)
     lines += ["## How it was measured", "", _measurement_caption(results), ""]
+    lines += families_section(results)
     lines += _accuracy_section(results, rows)
     lines += _noise_section(results, rows)
     lines += _advantage_section(summary, results["pattern_counts"])
