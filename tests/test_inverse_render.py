@@ -755,6 +755,39 @@ def test_run_invrender_failure_leaves_the_earlier_run_whole(tmp_path, scene_file
     assert not fresh.exists()
 
 
+def test_run_invrender_refused_move_keeps_the_earlier_logs_and_writes_no_json(tmp_path, scene_file, monkeypatch):
+    """A rerun refused when its staged files move in (after the fit) leaves the earlier run's
+    files and logs as they were, and writes no --json beside them; a rerun that succeeds replaces
+    the earlier logs."""
+    import capture_sim.atomic as atomic
+    import train.invrender_command as command
+
+    out = tmp_path / "run"
+    command.run_invrender(command.InvRenderConfig(scene=scene_file, out=out, basis="1", iterations=2))
+    logs = sorted((out / "tensorboard").rglob("events*"))
+    assert logs
+    fitted, fit, check = [], command._fit_and_evaluate, atomic.check_replaceable
+
+    def fit_then_refuse(*args, **kwargs):
+        fitted.append(True)
+        return fit(*args, **kwargs)
+
+    def refuse_after_fit(path):
+        if fitted:
+            raise InputError(f"cannot replace {path}")
+        return check(path)
+
+    monkeypatch.setattr(command, "_fit_and_evaluate", fit_then_refuse)
+    monkeypatch.setattr(atomic, "check_replaceable", refuse_after_fit)
+    with pytest.raises(InputError, match="cannot replace"):
+        command.run_invrender(command.InvRenderConfig(scene=scene_file, out=out, basis="1", iterations=2, json=tmp_path / "r.json"))
+    assert sorted((out / "tensorboard").rglob("events*")) == logs and not (tmp_path / "r.json").exists()
+    monkeypatch.undo()
+    command.run_invrender(command.InvRenderConfig(scene=scene_file, out=out, basis="1", iterations=2))
+    now = sorted((out / "tensorboard").rglob("events*"))
+    assert now and not set(now) & set(logs)
+
+
 def test_run_invrender_refuses_a_tensorboard_folder_it_did_not_write(tmp_path, scene_file):
     from train.invrender_command import InvRenderConfig, run_invrender
 

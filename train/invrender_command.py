@@ -19,7 +19,6 @@ import contextlib
 import dataclasses
 import json
 import math
-import shutil
 import time
 import warnings
 from dataclasses import asdict, dataclass, field
@@ -256,22 +255,21 @@ def _run(config: InvRenderConfig, progress: bool) -> dict:
     timings["data"] = time.perf_counter() - start
     grid = {"pixel_index": pixels.transport.pixel_index, "height": scene.height, "width": scene.width}
     out = None if config.out is None else Path(config.out)
+    obsolete: list[Path] = []
     with contextlib.ExitStack() as stack:
         # --out's files and TensorBoard logs are staged and replace an earlier run's together at
         # the end: a failure or Ctrl-C part-way never leaves a folder mixing two runs.
-        staging = None if out is None else stack.enter_context(staged_files(out))
+        staging = None if out is None else stack.enter_context(staged_files(out, obsolete=obsolete))
         board = _TensorBoard(staging)
         try:
             output = _fit_and_evaluate(config, scene, pixels, split, data, grid, board, timings, start, cpu_start, progress, staging)
         finally:
             board.close()
-        if config.json is not None:
-            write_json(config.json, output)
-        if out is not None:  # what the staged files do not replace: an earlier run's logs and selection chart
-            shutil.rmtree(out / TENSORBOARD_FOLDER, ignore_errors=True)
-            for name in OUTPUT_FILES:
-                if not (staging / name).exists():
-                    (out / name).unlink(missing_ok=True)
+        if out is not None:  # what the staged files do not replace (an earlier run's logs and selection chart) goes as they move in
+            earlier_logs = [path for path in (out / TENSORBOARD_FOLDER).rglob("*") if not path.is_dir()]
+            obsolete += [path for path in earlier_logs + [out / name for name in OUTPUT_FILES] if not (staging / path.relative_to(out)).exists()]
+    if config.json is not None:  # after --out's files stand: a refused move leaves no new JSON beside the old files
+        write_json(config.json, output)
     return output
 
 
