@@ -350,9 +350,9 @@ def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeyp
         "bits_bool": ("bit_depth = 12", "bit_depth = false"),
         "gamma_bool": ("gamma = 2.2", "gamma = true"),
         # A radius below width / pi bends the panel beyond a half cylinder.
-        "curvature": ("curvature_radius = 1.8", "curvature_radius = 0.3"),
-        "curvature_negative": ("curvature_radius = 1.8", "curvature_radius = -1.8"),
-        "curvature_nan": ("curvature_radius = 1.8", "curvature_radius = nan"),
+        "curvature": ("curvature_radius = 1.03", "curvature_radius = 0.3"),
+        "curvature_negative": ("curvature_radius = 1.03", "curvature_radius = -1.8"),
+        "curvature_nan": ("curvature_radius = 1.03", "curvature_radius = nan"),
         # Misspelt keys of every table, and falloff constants of the wrong kind, are errors too.
         "panel_typo": ("tilt_deg = 15.0", "tilt_deg = 15.0\ntilt = 5.0"),
         "noise_typo": ("read_std = 5e-4", "read_std = 5e-4\nread_noise = 1e-3"),
@@ -371,7 +371,7 @@ def test_bad_rig_files_and_out_of_memory_give_one_line(tmp_path, capsys, monkeyp
         "tilt_inf": ("tilt_deg = 15.0", "tilt_deg = inf"),
         "tilt_120": ("tilt_deg = 15.0", "tilt_deg = 120.0"),
         "distance_text": ("distance = 0.0", 'distance = "x"'),
-        "curvature_table": ("curvature_radius = 1.8", "curvature_radius = {}"),
+        "curvature_table": ("curvature_radius = 1.03", "curvature_radius = {}"),
         "offset_bool": ("offset = [0.03, -0.25]", "offset = [true, -0.25]"),
     }.items():
         assert old in text, (name, old)
