@@ -102,7 +102,7 @@ class NoiseModel:
 
     def __post_init__(self):
         values = (self.shot, self.read_std)
-        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0 for v in values):
+        if not all(isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) and v >= 0 for v in values):
             raise InputError(f"noise shot and read_std must be finite numbers >= 0, got {self.shot!r}, {self.read_std!r}")
         # Far beyond pure noise (std 1 = full scale), and what float32 variances hold with room to spare.
         if self.shot > MAX_NOISE_VARIANCE or self.read_std > math.sqrt(MAX_NOISE_VARIANCE):
@@ -250,8 +250,8 @@ class Rig:
             )
         if self.exposure is not None and not (self.exposure > 0 and math.isfinite(self.exposure)):
             raise InputError(f"rig {self.name}: exposure must be positive or auto")
-        if self.bit_depth is not None and not 1 <= self.bit_depth <= 24:
-            raise InputError(f"rig {self.name}: bit_depth must be 1..24 or none")
+        if self.bit_depth is not None and not (isinstance(self.bit_depth, numbers.Integral) and not isinstance(self.bit_depth, bool) and 1 <= self.bit_depth <= 24):
+            raise InputError(f"rig {self.name}: bit_depth must be a whole number in 1..24 or none, got {self.bit_depth!r}")
         if not (math.isfinite(self.working_distance) and self.working_distance > 0):
             raise InputError(f"rig {self.name}: working_distance must be a positive number of metres, got {self.working_distance!r}")
         if self.panel_pixels is not None:

@@ -109,7 +109,7 @@ def light_transport(olat, mask=None, dtype=torch.float32) -> LightTransport:
         matrix[:, k, :] = rows.T
         # Per light, not one min over the whole matrix: after that 540 MB reduction the solver's
         # full-frame benchmark ran 25% slower in half of the runs (measured, cause unknown).
-        lowest = min(lowest, float(rows.min())) if rows.numel() else lowest
+        lowest = min(lowest, float(rows.detach().min())) if rows.numel() else lowest
     if not bool(torch.isfinite(matrix).all()):
         raise InputError("olat: contains NaN or infinite values")
     if lowest < 0:
@@ -264,7 +264,9 @@ def sensor(
         # The floor keeps the square root's gradient finite where the variance is zero (no read
         # noise at zero signal, or a noise model scaled to 0).
         std = torch.sqrt(noise.shot * signal.clamp_min(0.0) + noise.read_std**2 + torch.finfo(signal.dtype).tiny)
-        z = torch.randn(signal.shape, generator=generator, dtype=signal.dtype)
+        # Drawn in float32 whatever the working dtype: torch.randn gives one seed different numbers
+        # in float32 and float64, and the same seed must give the same noise at either precision.
+        z = torch.randn(signal.shape, generator=generator, dtype=torch.float32).to(signal.dtype)
         signal = signal + std * z
     captured = _SaturatingClip.apply(signal, CLIP_SHARPNESS)
     if bit_depth is not None:

@@ -52,6 +52,8 @@ def test_simulate_matches_numpy_from_meta(tmp_path, scene_file, kind, exposure):
     np.testing.assert_allclose(captures, expected, rtol=1e-5, atol=1e-7)
     if kind == "white":
         assert (captures == 1.0).any(), "clipping must be visible"
+    mask = np.load(scene_file)["mask"]
+    assert meta["saturated_fraction"] == pytest.approx(float((captures[:, mask] >= 1.0).mean()))  # of the object, not the background
     assert (out / "contact_sheet.png").is_file() and len(list(out.glob("capture_*.png"))) == len(values)
 
 

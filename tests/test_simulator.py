@@ -8,7 +8,7 @@ import torch
 from capture_sim.display import display_emission
 from capture_sim.errors import InputError
 from capture_sim.reference import simulate_noise_free_reference
-from capture_sim.rig import NoiseModel
+from capture_sim.rig import NoiseModel, load_rig
 from capture_sim.simulator import auto_exposure, light_transport, noise_free_radiance, sensor, simulate
 from tests.conftest import TOLERANCE
 
@@ -118,6 +118,34 @@ def test_noise_is_reproducible_with_seed(tiny_rig):
     other = simulate(patterns, transport, tiny_rig, generator=torch.Generator().manual_seed(6)).captures
     assert torch.equal(runs[0], runs[1])
     assert not torch.equal(runs[0], other)
+
+
+def test_one_seed_gives_the_same_noise_in_float32_and_float64():
+    noise = NoiseModel(shot=1e-4, read_std=5e-4)
+    signal = torch.linspace(0.0, 0.8, 1000, dtype=torch.float64)
+    wide, narrow = (sensor(signal.to(dtype), noise, None, torch.Generator().manual_seed(5)) for dtype in (torch.float64, torch.float32))
+    assert float((wide - narrow.double()).abs().max()) < 1e-6  # different draws differ by ~1e-2
+
+
+def test_rig_and_noise_model_number_types():
+    """Numpy numbers are numbers; a bit depth must be a whole number (not 12.5, not True)."""
+    import dataclasses
+
+    assert NoiseModel(np.float32(1e-4), np.float64(5e-4)).shot == pytest.approx(1e-4)
+    rig = load_rig()
+    assert dataclasses.replace(rig, bit_depth=np.int64(10)).bit_depth == 10
+    for bad in (12.5, True, 0, 25):
+        with pytest.raises(InputError, match="bit_depth must be a whole number"):
+            dataclasses.replace(rig, bit_depth=bad)
+
+
+def test_light_transport_of_a_stack_that_requires_grad_warns_nothing():
+    import warnings
+
+    stack = torch.rand(4, 3, 5, 3, requires_grad=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert light_transport(stack).num_lights == 4
 
 
 def test_quantisation_levels_and_straight_through_gradient():

@@ -122,7 +122,7 @@ def run_simulate(config: SimulateConfig) -> dict:
         "bit_depth": None if noise_free else rig.bit_depth,
         "noise": None if noise_free else {"shot": rig.noise.shot, "read_std": rig.noise.read_std},
         "seed": config.seed,
-        "saturated_fraction": float((images >= 1.0).mean()),
+        "saturated_fraction": float((images[:, scene.mask] >= 1.0).mean()),  # of the object's captured values, not the background's
         "files": names,
         "formula": "captures = q(clip(exposure * sum_k scale * (P[m,k] + backlight[k]) ** gamma * olat[k] + noise))",
     }
