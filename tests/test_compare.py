@@ -289,7 +289,10 @@ def test_summary_tables_against_plain_computation():
     assert pivot_cell(rows["a"], "mae", 2) == "20.00"
     assert pivot_cell(dict(rows["a"], invalid_fraction=1.0), "mae", 2) == "20.00 (all invalid)"
     assert pivot_cell(dict(rows["a"], invalid_fraction=1.0), "compute_seconds", 1) == "0.1"
-    assert pivot_cell(rows["a"], "reconstruct_seconds", None) == "0.04"  # a timing to two significant digits, not "0"
+    assert pivot_cell(rows["a"], "reconstruct_seconds", None) == "0.040"  # a timing to two significant digits, not "0"
+    assert [_seconds(value) for value in (0.2, 0.0934, 1.0, 9.96, 12.4, 250.0)] == ["0.20", "0.093", "1.0", "10", "12", "250"]
+    assert pivot_cell(dict(rows["a"], invalid_fraction=0.9999), "mae", 2) == "20.00 (99.99% invalid)"  # nearly all: the placeholder
+    assert pivot_cell(dict(rows["a"], invalid_fraction=0.98), "mae", 2) == "20.00"
     summary = summary_tables(results)
     by_noise = {c["noise_scale"]: c for c in summary["learned_vs_heuristic"]}
     assert by_noise[0.5]["best_heuristic"] == "a" and by_noise[0.5]["ratio"] == pytest.approx(8.5 / 10.0)
@@ -354,10 +357,9 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
         assert 0 < evaluation["reconstruct_seconds"] < evaluation["compute_seconds"]
         assert set(evaluation["flagged"]) == set(FLAG_NAMES) and all(0 <= share <= 1 for share in evaluation["flagged"].values())
         assert [scene["name"] for scene in evaluation["scenes"]] == results["test_scenes"]
-        if method["kind"] == "reference":
-            continue  # its gain is in other units (test_olat_reference_and_olat_patterns_take_the_same_capture_time)
-        # Exposure time scales with the gain relative to the all-white display, which no pattern outshines.
-        whites = results["white_exposures"]
+        # Exposure time scales with the gain relative to the all-white display, which no pattern outshines;
+        # the reference's gain is in other units (test_olat_reference_and_olat_patterns_take_the_same_capture_time).
+        whites = results["white_exposures_olat" if method["kind"] == "reference" else "white_exposures"]
         assert evaluation["capture_seconds"] == pytest.approx(np.mean([method["M"] * 0.44 * scene["exposure"] / white
                                                                        for scene, white in zip(evaluation["scenes"], whites)]))
         assert all(scene["exposure"] >= white * (1 - 1e-6) for scene, white in zip(evaluation["scenes"], whites))
@@ -872,7 +874,7 @@ def test_report_reader_fixes():
 
     assert noise_verdict(0.995, 1.005) == "learned patterns are no better than the best heuristic at either end"
     assert noise_verdict(0.995, 0.9) == "learned patterns overtake the best heuristic"
-    assert [_seconds(v) for v in (0.0044, 0.009, 0.15, 1.234, None)] == ["0.0044", "0.009", "0.15", "1.2", "-"]
+    assert [_seconds(v) for v in (0.0044, 0.009, 0.15, 1.234, None)] == ["0.0044", "0.0090", "0.15", "1.2", "-"]
     assert _timing_text({"config": {"eval_workers": 2}, "threads": 2}) == (
         ", single-threaded in up to 2 worker processes sharing the machine (on 2 threads when one set is evaluated)")
     results["methods"][2]["info"] = {"same_patterns_as": results["methods"][1]["id"]}

@@ -343,7 +343,8 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
 
     Returns:
         The results dict written to ``results.json``: resolved ``config``, ``rig``, ``exposure_ms``,
-        ``white_exposures`` (e_white per test scene, ``white_exposures``), scene names, ``methods`` (each with ``evaluations`` per noise level), ``skipped``,
+        ``white_exposures`` (e_white per test scene, ``white_exposures``), ``white_exposures_olat``
+        (the same in the OLAT reference's units), scene names, ``methods`` (each with ``evaluations`` per noise level), ``skipped``,
         ``summary`` (learned vs best heuristic, seed spread) and ``timings``.
     """
     from train.report import CHARTS, summary_tables, write_report
@@ -399,6 +400,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
         "exposure_ms": exposure_ms,
         "exposure_ms_source": exposure_source,
         "white_exposures": whites["patterns"],  # e_white per test scene, in the order of test_scenes
+        "white_exposures_olat": whites["olat"],  # the same in the units of the OLAT reference's gain
         "default_noise": config.default_noise,
         "noise_scales": [float(s) for s in config.noise_scales],
         "pattern_counts": list(config.pattern_counts),

@@ -247,6 +247,14 @@ def _series(rows: list[dict]) -> dict:
 ALL_INVALID_LABEL = "every pixel invalid (MAE of the placeholder normal)"
 
 
+def invalid_note(fraction: float) -> str:
+    """' (all invalid)' or ' (99.99% invalid)' after an error that (nearly) only measures the
+    placeholder normal (at least 99% of the pixels invalid); '' otherwise."""
+    if fraction >= 1.0:
+        return " (all invalid)"
+    return f" ({100 * fraction:.4g}% invalid)" if fraction >= 0.99 else ""
+
+
 def all_invalid(row: dict) -> bool:
     """Whether every pixel of a method's evaluation was flagged invalid: its MAE measures the
     placeholder normal, not a reconstruction."""
@@ -499,7 +507,8 @@ def _seconds(value) -> str:
     between small ones."""
     if value is None or not math.isfinite(value):
         return "-"
-    return f"{value:.2g}" if value < 100 else f"{value:.0f}"
+    # '#' keeps trailing zeros (0.20, not 0.2, beside 0.093), and leaves a bare point after 10 to 99.
+    return f"{value:#.2g}".rstrip(".") if value < 10 else f"{value:.0f}"
 
 
 def _table(header: list[str], lines: list[list[str]]) -> str:
@@ -557,8 +566,9 @@ def _measurement_caption(results: dict) -> str:
         f"weighs the same). {_capture_text(results)} Compute time = wall seconds per scene of the reconstruction "
         f"of {_pixels_short(results)} on this machine's CPU (the simulation of the captures, which the rig's camera replaces, "
         f"is left out){_timing_text(results)}, the median over the method's evaluations at every noise level; only "
-        "differences of 2x or more are beyond the noise of such timings. Exposure = mean auto-exposure gain. Cost = wall seconds spent learning "
-        f"(training scenes only) or searching. Learning and searches used noise scale {default:g}. {_learning_text(results)}"
+        "differences of 2x or more are beyond the noise of such timings. Exposure = mean auto-exposure gain. Cost = wall seconds of a "
+        f"learning run (its steps see the training scenes only; the time includes loading the held-out scenes and validating on them) "
+        f"or of a search. Learning and searches used noise scale {default:g}. {_learning_text(results)}"
         f"{_preset_text(results)}"
     )
 
@@ -638,7 +648,9 @@ def _learning_text(results: dict) -> str:
 def _capture_text(results: dict) -> str:
     return (f"Capture time = M x exposure time per image: {results['exposure_ms']:g} ms ({results['exposure_ms_source']}) for the "
             "all-white display, times e / e_white for a pattern set that auto exposure gives gain e (the noise is added after e "
-            "in full-scale units, so e acts as integration time: dim patterns take longer), averaged over scenes.")
+            "in full-scale units, so e acts as integration time: dim patterns take longer), averaged over scenes. The OLAT "
+            "reference's gain multiplies the raw OLAT stack instead of the display's emission, so its e_white is the all-white "
+            "gain times the emission of a superpixel lit at 1, s mean_k (1 + B_k)^gamma (results.json: white_exposures_olat).")
 
 
 def _preset_text(results: dict) -> str:
@@ -696,7 +708,7 @@ def pivot_cell(row: dict, key: str, digits: int | None) -> str:
     two significant digits when ``digits`` is None), and how many seeds it averages when more
     than one (a series can average several seeds at one M and one at another). An error where
     every pixel was invalid is marked: it measures the default normal, not a reconstruction."""
-    note = " (all invalid)" if key in ("mae", "median") and all_invalid(row) else ""
+    note = invalid_note(row.get("invalid_fraction", 0.0)) if key in ("mae", "median") else ""
     return (_seconds(row[key]) if digits is None else _fmt(row[key], digits)) + note + (f" (mean of {row['seeds']} seeds)" if row["seeds"] > 1 else "")
 
 
@@ -875,19 +887,19 @@ def summary_section(results: dict, summary: dict) -> list[str]:
     return lines
 
 
-def _scene_maes(results: dict, count: int | None, noise: float, kind: str, series: str | None = None) -> list[tuple[float, bool] | None]:
+def _scene_maes(results: dict, count: int | None, noise: float, kind: str, series: str | None = None) -> list[tuple[float, float] | None]:
     """Per test scene, in ``results["test_scenes"]`` order (positions, not names: two files may
-    carry one scene name): (MAE, every pixel invalid) of the ``kind`` methods (of ``series``, if
-    given) at M = ``count`` (any M if None) and ``noise``, the mean over seeds where several
-    methods match (learned seeds), all-invalid only if it is for every seed; None where none has
+    carry one scene name): (MAE, invalid share) of the ``kind`` methods (of ``series``, if given)
+    at M = ``count`` (any M if None) and ``noise``, the mean MAE over seeds where several methods
+    match (learned seeds) and the least invalid share of them; None where none has
     the scene."""
     values: list[list] = [[] for _ in results["test_scenes"]]
     for method in results["methods"]:
         if method["kind"] == kind and (count is None or method["M"] == count) and (series is None or method["series"] == series):
             evaluation = _evaluation(method, noise)
             for position, scene in enumerate((evaluation or {}).get("scenes", [])[: len(values)]):
-                values[position].append((scene["mae"], all_invalid(scene)))
-    return [(float(np.mean([mae for mae, _ in entries])), all(invalid for _, invalid in entries)) if entries else None for entries in values]
+                values[position].append((scene["mae"], scene.get("invalid_fraction", 0.0)))
+    return [(float(np.mean([mae for mae, _ in entries])), min(invalid for _, invalid in entries)) if entries else None for entries in values]
 
 
 def _scene_wins(results: dict, count: int, heuristic: str, noise: float) -> tuple[int, int]:
@@ -917,14 +929,14 @@ def scene_section(results: dict, summary: dict) -> list[str]:
         return []
 
     def cell(entry) -> str:
-        return "-" if entry is None else _fmt(entry[0]) + (" (all invalid)" if entry[1] else "")
+        return "-" if entry is None else _fmt(entry[0]) + invalid_note(entry[1])
 
     body = [[scene] + [cell(maes[position]) for _, maes in columns] for position, scene in enumerate(results["test_scenes"])]
     return ["## Per test scene", "",
             f"MAE (deg) of each test scene at noise scale {default:g}: the learned patterns (mean over seeds) and the heuristic "
             "family with the lowest MAE over all scenes at that M. The scene names give the shape and the material: where "
-            "every method's error is high, the scene is beyond what the Lambertian reconstructor can fit. '(all invalid)': "
-            "every pixel was flagged invalid, and the number measures the placeholder normal.", "",
+            "every method's error is high, the scene is beyond what the Lambertian reconstructor can fit. '(all invalid)' "
+            "(or '(99.9% invalid)'): every pixel (or nearly every) was flagged invalid, and the number measures the placeholder normal.", "",
             _table(["scene"] + [name for name, _ in columns], body), ""]
 
 
