@@ -188,8 +188,9 @@ def export_frames(
 
 
 def frame_digits(num_patterns: int, num_olat_frames: int) -> int:
-    """Digits of the frame numbers (``pattern_000.png``): three, or as many as 1000 frames or more
-    of one kind need, so that the names sort in capture order."""
+    """Digits of the frame numbers (``pattern_000.png``): three, or as many as more than 1000
+    frames of one kind need, so that each kind's names sort in capture order (the manifest's
+    ``capture_order`` gives the whole sequence: patterns, then black, white and OLAT frames)."""
     return max(3, len(str(num_patterns - 1)), len(str(num_olat_frames - 1)))
 
 

@@ -368,13 +368,15 @@ class GroupedOlat(Family):
 
     The block is 3 x 3 by default (smaller on grids with fewer than 3 rows or columns). Block
     centres are chosen like ``olat`` positions among the places where the block fits (M = 4: the
-    four corner blocks, as published), so M = 1..(R - 2)(C - 2) for 3 x 3 blocks. Parameters: lo,
+    four corner blocks, as published), so M = 1..(R - 2)(C - 2) for 3 x 3 blocks (on a grid
+    under 3 rows or columns the block is as high or wide as the grid: M = 1..(R - h + 1)(C - w + 1)
+    for h = min(3, R), w = min(3, C)). Parameters: lo,
     hi, ``block_height``, ``block_width`` (cells, shared by all patterns) and per pattern m the
     block centre ``row_m``, ``col_m`` (grid index units).
     """
 
     name = "grouped_olat"
-    summary = "a 3 x 3 block per pattern (corner blocks first, then spread out); M = 1..(R - 2)(C - 2)"
+    summary = "a 3 x 3 block per pattern (corner blocks first, then spread out; smaller on grids under 3 x 3); M = 1..(R - 2)(C - 2) on 3 x 3 grids and larger"
 
     @staticmethod
     def _block(rows, cols):

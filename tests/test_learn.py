@@ -63,6 +63,30 @@ def test_same_seed_same_patterns_and_resume_matches(tmp_path, scene_dirs, monkey
     assert [step for step, _ in first.val_history] == [2, 4]
 
 
+def test_tensorboard_log_of_a_resumed_run_has_each_step_once_with_the_rate_it_used(tmp_path, scene_dirs, monkeypatch):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    config = _config(scene_dirs, steps=6, checkpoint_every=2, val_every=0)
+    original = learn.training_loss
+
+    def interrupted(logits, scenes, cfg, step, ps_config):
+        if step == 3:  # after logging step 3, with the checkpoint at step 2
+            raise KeyboardInterrupt
+        return original(logits, scenes, cfg, step, ps_config)
+
+    monkeypatch.setattr(learn, "training_loss", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train_patterns(config, tmp_path / "p.npz", progress=False, logdir=tmp_path / "tb")
+    monkeypatch.setattr(learn, "training_loss", original)
+    train_patterns(config, tmp_path / "p.npz", progress=False, logdir=tmp_path / "tb")
+    events = EventAccumulator(str(tmp_path / "tb"))
+    events.Reload()
+    assert [event.step for event in events.Scalars("train/loss")] == [1, 2, 3, 4, 5, 6]
+    rates = [event.value for event in events.Scalars("train/learning_rate")]
+    assert rates[0] == pytest.approx(config.learning_rate)  # step 1 uses the initial rate
+    assert rates[-1] > config.learning_rate * config.final_lr_fraction * 1.0001  # the last step does not use the final rate yet
+
+
 def test_learning_lowers_training_loss(scene_dirs):
     config = _config(scene_dirs, steps=0, init="tri_random")
     rig = load_rig()

@@ -442,7 +442,7 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
         start_step, val_history = state["step"], state["val_history"]
         loss_value = state.get("loss", float("nan"))
         earlier_seconds = state.get("seconds", 0.0)
-    writer = summary_writer(logdir)
+    writer = summary_writer(logdir, start_step)
     ps_config = UnrolledPSConfig()
     eval_settings = EvalSettings(noise_scale=config.noise_scale, seed=config.seed + 7919)
     bar = tqdm(range(start_step, config.steps), initial=start_step, total=config.steps, desc=f"learning M={config.num_patterns}", disable=not progress, unit="step")
@@ -456,12 +456,13 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
                              f"(loss {float(loss.detach()):.4g}); lower learning_rate or rerender_weight")
         optimiser.step()
         keep_movable(logits)
+        rate = scheduler.get_last_lr()[0]  # the rate this step used (the scheduler's next one after its step)
         scheduler.step()
         loss_value = float(loss.detach())
         done = step + 1
         if writer is not None:
             writer.add_scalar("train/loss", loss_value, done)
-            writer.add_scalar("train/learning_rate", scheduler.get_last_lr()[0], done)
+            writer.add_scalar("train/learning_rate", rate, done)
         if val_scenes and ((config.val_every and done % config.val_every == 0) or done == config.steps):
             val_history.append((done, _validate(logits, val_scenes, eval_settings, writer, done)))
         bar.set_postfix(loss=f"{loss_value:.4f}", **({"val_mae": f"{val_history[-1][1]:.2f}"} if val_history else {}))
@@ -492,14 +493,16 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
     return TrainResult(learned, val_history, loss_value, earlier_seconds + time.perf_counter() - began)
 
 
-def summary_writer(logdir: Path | None):
-    """A TensorBoard writer for the folder ``logdir`` (created if needed), or None without one."""
+def summary_writer(logdir: Path | None, start_step: int | None = None):
+    """A TensorBoard writer for the folder ``logdir`` (created if needed), or None without one.
+    With ``start_step`` (a learning run that starts after that many steps, logged from step 1),
+    the events an earlier run logged for the later steps are hidden: they are logged again."""
     name = check_logdir(logdir)
     if name is None:
         return None
     from torch.utils.tensorboard import SummaryWriter
 
-    return SummaryWriter(name)
+    return SummaryWriter(name, purge_step=None if start_step is None else start_step + 1)
 
 
 def check_logdir(logdir: Path | None) -> str | None:
