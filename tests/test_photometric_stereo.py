@@ -38,6 +38,18 @@ def _flat(scene, captures):
     return captures.reshape(captures.shape[0], -1, 3)[:, index], scene.points.reshape(-1, 3)[index], scene.normal.reshape(-1, 3)[index]
 
 
+def test_float32_noise_free_pixels_converge_despite_rounding_noise(sphere):
+    """In float32 the moves of slowly contracting pixels jitter at ~0.01-0.05 deg and once failed to
+    shrink above the rounding level: a third of this noise-free sphere was flagged not_converged
+    (none in float64). Such pixels now finish in float64: no flag, and the float64 accuracy."""
+    captures, emission = _sphere_captures(sphere, "initial_tri_random_4")
+    single = [value.float() for value in (captures, emission, sphere.points, sphere.lights)]
+    result = solve_ps_image(single[0], single[1], single[2], sphere.mask, single[3], Falloff())
+    assert result.normal.dtype == torch.float32
+    assert not result.flags["not_converged"][sphere.mask].any()
+    assert normal_metrics(result.normal.double(), sphere.normal, sphere.mask)["mae"] < 0.02
+
+
 def test_image_solve_shapes_and_types(sphere):
     captures, emission = _sphere_captures(sphere, "initial_mono_gradient")
     result = solve_ps_image(captures, emission, sphere.points, sphere.mask, sphere.lights, Falloff())
