@@ -62,9 +62,14 @@ INVALIDATING_FLAGS = {
 
 def invalid_causes(flag_shares: dict[str, float]) -> str:
     """'bad_geometry (the point lies ...) on 100% of the pixels; ...': the invalidating flags
-    raised, largest share first, from a dict of flag name -> share of pixels in [0, 1]."""
+    raised, largest share first, then the share of saturated pixels (their captures at full scale
+    are left out of the fit, which can leave too few), from a dict of flag name -> share of
+    pixels in [0, 1]."""
     raised = sorted(((share, name) for name, share in flag_shares.items() if name in INVALIDATING_FLAGS and share > 0), reverse=True)
-    return "; ".join(f"{name} ({INVALIDATING_FLAGS[name]}) on {100 * share:.3g}% of the pixels" for share, name in raised) or "no flag raised"
+    text = "; ".join(f"{name} ({INVALIDATING_FLAGS[name]}) on {100 * share:.3g}% of the pixels" for share, name in raised) or "no flag raised"
+    # Saturated captures leave the fit (so too few equations may remain) without invalidating a pixel themselves.
+    saturated = flag_shares.get("saturated", 0.0)
+    return text + (f"; saturated (captures at full scale, left out of the fit) on {100 * saturated:.3g}% of the pixels" if saturated > 0 else "")
 
 
 MAX_PIXELS_PER_SOLVE = 1 << 19

@@ -800,6 +800,18 @@ def test_run_invrender_refuses_a_tensorboard_folder_it_did_not_write(tmp_path, s
     assert (tmp_path / "logs" / "tensorboard" / "train").is_dir()
 
 
+def test_run_invrender_refuses_a_scene_too_bright_for_float32_naming_the_olat_stack(tmp_path, scene_file):
+    """Auto exposure would need a gain of ~1e-32: the message points at the scene, not at an
+    emission the user never set."""
+    from train.invrender_command import InvRenderConfig, run_invrender
+
+    with np.load(scene_file) as data:
+        arrays = dict(data)
+    np.savez(tmp_path / "bright.npz", **{**arrays, "olat": arrays["olat"].astype(np.float32) * np.float32(1e30)})
+    with pytest.raises(InputError, match="rescale the scene's OLAT stack"):
+        run_invrender(InvRenderConfig(scene=tmp_path / "bright.npz", basis="1", iterations=1))
+
+
 def test_run_invrender_missing_scene_raises(tmp_path):
     from train.invrender_command import InvRenderConfig, run_invrender
 

@@ -50,6 +50,15 @@ def test_float32_noise_free_pixels_converge_despite_rounding_noise(sphere):
     assert normal_metrics(result.normal.double(), sphere.normal, sphere.mask)["mae"] < 0.02
 
 
+def test_invalid_causes_name_saturation_that_left_too_few_equations():
+    from reconstruct.photometric_stereo import invalid_causes
+
+    text = invalid_causes({"ill_conditioned": 1.0, "saturated": 1.0, "dark": 0.0, "grazing": 0.2})
+    assert text.startswith("ill_conditioned (too few or too similar captures) on 100% of the pixels; saturated")
+    assert "grazing" not in text and "dark" not in text
+    assert invalid_causes({"ill_conditioned": 0.5}) == "ill_conditioned (too few or too similar captures) on 50% of the pixels"
+
+
 def test_image_solve_shapes_and_types(sphere):
     captures, emission = _sphere_captures(sphere, "initial_mono_gradient")
     result = solve_ps_image(captures, emission, sphere.points, sphere.mask, sphere.lights, Falloff())

@@ -33,7 +33,7 @@ from capture_sim.rig import DEFAULT_RIG, load_rig
 from capture_sim.scene import load_scene, rig_for_scene
 from capture_sim.simulator import auto_exposure, sensor, simulate
 from patterns.io import check_patterns_match_rig, load_patterns
-from reconstruct.inverse_render import FitConfig, FitProblem
+from reconstruct.inverse_render import EMISSION_RANGE, FitConfig, FitProblem
 from reconstruct.metrics import normal_metrics
 from reconstruct.model_selection import SelectionConfig, choose_light_model, light_spread, select_basis
 from reconstruct.relight import TEST_EVERY, VALIDATION_EVERY, olat_emission, relighting_metrics, split_lights
@@ -172,6 +172,12 @@ def _prepare_data(config: InvRenderConfig, scene, rig, pixels, split) -> _Data:
             capture = simulate(pattern_set, pixels.transport, rig, exposure=exposure, noise=noise_model, bit_depth=bits, generator=generator)
             captures, emission, exposure = capture.captures, capture.emission, capture.exposure
             description = {"patterns": str(config.patterns), "M": int(values.shape[0]), "pattern_meta": pattern_meta}
+    peak = float(emission.amax())
+    if not EMISSION_RANGE[0] <= peak <= EMISSION_RANGE[1]:  # the fit's own check would speak of an emission the user never set
+        raise InputError(f"{scene.label}: the captures need an emission peak of {peak:.3g} (exposure x display emission), outside "
+                         f"[{EMISSION_RANGE[0]:g}, {EMISSION_RANGE[1]:g}] where the inverse renderer's float32 albedos stay "
+                         f"representable; rescale the scene's OLAT stack (its largest value is {float(olat.amax()):.3g})"
+                         + ("" if setting == "auto" else " or the exposure"))
     description.update({
         "exposure": exposure,
         "exposure_mode": "auto" if setting == "auto" else "fixed",
@@ -293,8 +299,8 @@ def _fit_and_evaluate(config: InvRenderConfig, scene, pixels, split, data: _Data
     timings["initial_estimate"] = time.perf_counter() - tick
     if not bool(initial.valid.any()):
         # The fit would start from filled-in defaults, and the light-model test compares nothing.
-        warnings.warn(f"photometric stereo flags every pixel of {scene.label} invalid under these captures (too few, identical or "
-                      "dark ones; `displex evaluate` names the flags): the fit starts from default normals and its results say little",
+        warnings.warn(f"photometric stereo flags every pixel of {scene.label} invalid under these captures (too few, identical, "
+                      "dark or saturated ones; `displex evaluate` names the flags): the fit starts from default normals and its results say little",
                       DisplexWarning, stacklevel=2)
 
     # ---- light model: near field unless far field is indistinguishable
