@@ -522,6 +522,7 @@ class Vase(Shape):
         self.lipschitz = math.sqrt(1.0 + (1.05 * float(slope.abs().max())) ** 2)
 
     def radius_at(self, y: torch.Tensor) -> torch.Tensor:
+        """Radius (metres) of the vase's cross-section at heights ``y`` (any shape, metres, local frame)."""
         s = y / self.half_height
         return (self.base + self.belly * torch.exp(-(((s - self.belly_at) / 0.5) ** 2))
                 + self.lip * torch.exp(-(((s + 1.0) / 0.25) ** 2)))

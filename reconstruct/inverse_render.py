@@ -185,20 +185,25 @@ class BasisModel(torch.nn.Module):
         return model
 
     def normals(self, index=None) -> torch.Tensor:
+        """(N or n, 3) unit normals, camera frame, of every pixel or of pixels ``index``."""
         raw = self.normal_raw if index is None else self.normal_raw[index]
         return raw / raw.norm(dim=-1, keepdim=True).clamp_min(NORM_FLOOR)
 
     def weights(self, index=None) -> torch.Tensor:
+        """(N or n, J) basis weights (softmax: non-negative, summing to 1 per pixel)."""
         logits = self.weight_logits if index is None else self.weight_logits[index]
         return torch.softmax(logits, dim=-1)
 
     def diffuse(self) -> torch.Tensor:
+        """(J, 3) diffuse albedo per basis BRDF, in the fit's albedo units (``albedo_unit``)."""
         return self.log_diffuse.exp()
 
     def specular(self) -> torch.Tensor | None:
+        """(J, 3) specular albedo per basis BRDF in the same units, or None (Lambertian fit)."""
         return None if self.log_specular is None else self.log_specular.exp()
 
     def roughness(self) -> torch.Tensor:
+        """(J,) GGX roughness per basis BRDF, in [min_roughness, 1] (dimensionless)."""
         return self.min_roughness + (1.0 - self.min_roughness) * torch.sigmoid(self.roughness_logit)
 
 

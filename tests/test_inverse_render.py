@@ -755,10 +755,9 @@ def test_run_invrender_failure_leaves_the_earlier_run_whole(tmp_path, scene_file
     assert not fresh.exists()
 
 
-def test_run_invrender_refused_move_keeps_the_earlier_logs_and_writes_no_json(tmp_path, scene_file, monkeypatch):
+def test_run_invrender_refused_move_keeps_the_earlier_logs(tmp_path, scene_file, monkeypatch):
     """A rerun refused when its staged files move in (after the fit) leaves the earlier run's
-    files and logs as they were, and writes no --json beside them; a rerun that succeeds replaces
-    the earlier logs."""
+    files and logs as they were; a rerun that succeeds replaces the earlier logs."""
     import capture_sim.atomic as atomic
     import train.invrender_command as command
 
@@ -780,8 +779,8 @@ def test_run_invrender_refused_move_keeps_the_earlier_logs_and_writes_no_json(tm
     monkeypatch.setattr(command, "_fit_and_evaluate", fit_then_refuse)
     monkeypatch.setattr(atomic, "check_replaceable", refuse_after_fit)
     with pytest.raises(InputError, match="cannot replace"):
-        command.run_invrender(command.InvRenderConfig(scene=scene_file, out=out, basis="1", iterations=2, json=tmp_path / "r.json"))
-    assert sorted((out / "tensorboard").rglob("events*")) == logs and not (tmp_path / "r.json").exists()
+        command.run_invrender(command.InvRenderConfig(scene=scene_file, out=out, basis="1", iterations=2))
+    assert sorted((out / "tensorboard").rglob("events*")) == logs
     monkeypatch.undo()
     command.run_invrender(command.InvRenderConfig(scene=scene_file, out=out, basis="1", iterations=2))
     now = sorted((out / "tensorboard").rglob("events*"))

@@ -161,8 +161,9 @@ def bench_ps(num_patterns: int = 4, repeats: int = 5, seed: int = 0) -> dict:
 
     Gradients flow to the patterns through the effective emission and the captures, as in
     learning. The simulated captures are made once, outside the timed region, and the scene's light
-    transport is released before the solver runs. ``full_fwd_bwd_s`` uses torch's default thread
-    count; ``full_fwd_bwd_s_1_thread`` repeats it on one thread.
+    transport is released before the solver runs. ``full_fwd_bwd_s`` uses the process's thread
+    count (torch's default, one per core, unless ``--threads`` set it); ``full_fwd_bwd_s_1_thread``
+    repeats it on one thread.
     """
     pixels = full_frame_pixels()
     patterns = make_patterns("mono_gradient", num_patterns).float()

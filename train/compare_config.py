@@ -44,7 +44,7 @@ class SearchRun:
     maxtime: float | None = None
     """Wall-clock limit in seconds, or None."""
     seed: int = 0
-    """NLopt, pixel-subset and noise seed."""
+    """NLopt, pixel-subset and noise seed, and that of a random family's start values."""
     pixels_per_scene: int = 3000
     """Fixed pixels per training scene in the objective (0 = all)."""
 
@@ -80,7 +80,8 @@ class CompareConfig:
     """Preset of the heuristic families: "default" (lo 0, hi 1) or "ddps" (published 0.1 / 0.9)."""
     learned: dict = field(default_factory=dict)
     """TrainConfig overrides for every learning run (steps, init, ...); the comparison sets
-    num_patterns, seed, rig, scenes, val_scenes, scene_size, scene_seed and noise_scale itself."""
+    num_patterns, seed, rig, scenes, val_scenes, scene_size, scene_seed, noise_scale and
+    rerender_weight itself (``rerender_weight`` / ``rerender_counts`` above set the latter)."""
     learned_at: dict = field(default_factory=dict)
     """Further TrainConfig overrides per M (table keys are M), e.g. fewer steps at M = 10."""
     learned_counts: tuple[int, ...] | None = None

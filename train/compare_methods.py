@@ -27,7 +27,8 @@ class Method:
 
     Attributes:
         id: unique key, e.g. ``heuristic_tri_complementary_M2`` or ``learned_M4_seed1``.
-        kind: "heuristic", "learned", "search", "external" or "reference".
+        kind: "heuristic", "learned", "rerender" (learned with the re-rendering loss), "search",
+            "external" or "reference".
         series: what the method is across M (a family, "learned", a search, an external name).
         label: text for tables and legends.
         num_patterns: M.

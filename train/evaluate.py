@@ -54,7 +54,8 @@ class SceneEvaluation:
 
 
 def olat_captures(pixels: ScenePixels, settings: EvalSettings, generator: torch.Generator, columns: torch.Tensor | None = None):
-    """Captures of the full OLAT stack: (K, N or P, 3) and the diagonal effective emission (K, K, 3).
+    """Captures of the full OLAT stack: (K, N or P, 3), the diagonal effective emission (K, K, 3)
+    and the exposure gain (float).
 
     Each OLAT image is exposed as the operator would for the whole stack (auto: 99.9th percentile of
     all of them over every masked pixel at 0.9), with the backlight removed as in the definition of

@@ -271,11 +271,11 @@ def _run(config: InvRenderConfig, progress: bool) -> dict:
             output = _fit_and_evaluate(config, scene, pixels, split, data, grid, board, timings, start, cpu_start, progress, staging)
         finally:
             board.close()
+        if config.json is not None:  # inside the block: an unwritable --json leaves --out as it was
+            write_json(config.json, output)
         if out is not None:  # what the staged files do not replace (an earlier run's logs and selection chart) goes as they move in
             earlier_logs = [path for path in (out / TENSORBOARD_FOLDER).rglob("*") if not path.is_dir()]
             obsolete += [path for path in earlier_logs + [out / name for name in OUTPUT_FILES] if not (staging / path.relative_to(out)).exists()]
-    if config.json is not None:  # after --out's files stand: a refused move leaves no new JSON beside the old files
-        write_json(config.json, output)
     return output
 
 

@@ -122,8 +122,9 @@ class TrainConfig:
     about 5x more per step and, on the default scenes, learned no better patterns in the same
     time (it differs from 'unrolled' mostly on specular pixels that no pattern fixes)."""
     rerender_weight: float = 0.0
-    """Weight of the re-rendering loss (estimated normals and albedo rendered by the baseline
-    renderer under the patterns, against the simulated captures); 0 = normal loss only."""
+    """Weight of the re-rendering loss (estimated normals and albedo rendered as Lambertian under
+    the patterns by ``capture_sim.render.render_olat``, against the simulated captures); 0 =
+    normal loss only."""
 
     def __post_init__(self):
         for name, least in (("num_patterns", 1), ("pixels_per_scene", 1), ("steps", 0)):

@@ -97,9 +97,11 @@ class SearchConfig:
     initial_step: float = 0.1
     """First step of local algorithms, as a fraction of each parameter's bound range."""
     seed: int = 0
-    """Seed of NLopt's random choices (``nlopt.srand``), the pixel subsets and the noise draws."""
+    """Seed of NLopt's random choices (``nlopt.srand``), the pixel subsets, the noise draws and the
+    start values of the random families (mono_random, tri_random, gray_noise)."""
     start: str = "default"
-    """Start point: the family's preset ``"default"`` (lo 0, hi 1) or ``"ddps"`` (published)."""
+    """Start point: the family's preset ``"default"`` (lo 0, hi 1 where the family has levels) or
+    ``"ddps"`` (published)."""
     scenes: tuple[str, ...] = ()
     """Scene files or folders the search optimises on; empty = the default synthetic train split."""
     noise_scale: float = 1.0
