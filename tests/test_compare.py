@@ -253,6 +253,32 @@ def test_external_file_on_another_grid_is_skipped_with_a_warning(scenes, tmp_pat
     assert methods == [] and skipped == [{"method": "small_panel", "M": 2, "reason": reason}]
 
 
+@pytest.mark.parametrize("changes, message", [
+    (dict(search=[{"family": "grouped_olat", "M": 99, "algorithm": "LN_SBPLX"}], pattern_counts=[2, 99], learned_counts=[2]), "grouped_olat supports M = 1.."),
+    (dict(search=[{"family": "tri_random", "M": 5, "algorithm": "LN_BOBYQA"}], pattern_counts=[2, 5], learned_counts=[2]), "2160 parameters"),
+    (dict(search=[{"family": "tri_random", "M": 4, "algorithm": "LN_BOBYQA"}], pattern_counts=[2, 4], learned_counts=[2]), None),  # 1728: fine
+    (dict(learned_at={2: {"init": "olat"}}, learned_counts=[4, 2], pattern_counts=[2, 4]), None),
+    (dict(learned_at={1: {"init": "tri_complementary"}}, learned_counts=[2, 1], pattern_counts=[1, 2]), "tri_complementary supports M = 2.."),
+    (dict(learned_counts=[2, 1], pattern_counts=[1, 2]), "init 'auto' starts M = 1"),
+])
+def test_a_run_that_cannot_start_stops_the_comparison_before_learning(scenes, tmp_path, monkeypatch, changes, message):
+    """Every learning start and search setup is checked before the first run: each used to fail
+    only when its turn came, after the learning runs before it."""
+    from train.compare_methods import _check_run_starts
+
+    config = tiny_config(scenes, **changes)
+    if message is None:
+        _check_run_starts(config, load_rig())
+        return
+
+    def no_learning(*args, **kwargs):
+        raise AssertionError("learning ran before every run's start was checked")
+
+    monkeypatch.setattr("train.compare_methods.learned_method", no_learning)
+    with pytest.raises(InputError, match=message):
+        collect_methods(config, load_rig(), tmp_path / "patterns", progress=False)
+
+
 def test_unreadable_external_file_stops_the_comparison_before_learning(scenes, tmp_path, monkeypatch):
     bad = tmp_path / "bad.npy"
     np.save(bad, np.full((2, 9, 16, 3), 1.5))  # set values outside [0, 1]

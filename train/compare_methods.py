@@ -16,8 +16,8 @@ from patterns.families import get_family, make_patterns
 from patterns.io import load_patterns
 from train.compare_config import CompareConfig, SearchRun
 from train.config_io import config_to_dict
-from train.learn import TrainConfig, auto_init_family, changed_files, input_fingerprints, train_patterns
-from train.search import run_search, trace_chart_path
+from train.learn import TrainConfig, auto_init_family, changed_files, initial_patterns, input_fingerprints, train_patterns
+from train.search import check_search_setup, run_search, trace_chart_path
 
 
 
@@ -127,6 +127,17 @@ def _check_reusable_runs(config: CompareConfig, pattern_dir: Path) -> None:
         raise InputError(f"{len(stale)} earlier runs in {pattern_dir} cannot be reused ({listed}); delete them or choose another output folder")
 
 
+def _check_run_starts(config: CompareConfig, rig) -> None:
+    """Refuse, before any learning starts, a learning start (family or pattern file) that does not
+    fit its M and the rig's grid, and a search whose family does not support its M there or has
+    more parameters than its algorithm takes: each run checks itself, but only when its turn comes,
+    after minutes of the runs before it."""
+    for count, seed, rerender in _learning_runs(config):
+        initial_patterns(config.train_config(count, seed, rerender), rig.rows, rig.cols)
+    for run in config.search:
+        check_search_setup(config.search_config(run), rig)
+
+
 def learned_method(config: CompareConfig, num_patterns: int, seed: int, pattern_dir: Path, progress: bool,
                    rerender: bool = False, logdir: Path | None = None) -> Method:
     """Learn (or reuse) the patterns of one learning run (``rerender``: with the re-rendering loss).
@@ -206,6 +217,7 @@ def collect_methods(config: CompareConfig, rig, pattern_dir: Path, progress: boo
     # External files are read first: an unreadable one stops the comparison before minutes of learning.
     external, skipped = external_methods(config, rig)
     _check_reusable_runs(config, pattern_dir)
+    _check_run_starts(config, rig)
     methods: list[Method] = []
     timings = {"learning_seconds": 0.0, "search_seconds": 0.0}
     for count in config.pattern_counts:

@@ -585,18 +585,29 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
         return _search(config, Path(out), logdir, progress)
 
 
+def check_search_setup(config: SearchConfig, rig) -> np.ndarray:
+    """Refuse a family that does not support M on the rig's grid, or more parameters than the
+    algorithm takes, before any scene is read; return the start vector (P,).
+
+    Raises:
+        InputError: as said (``Family.check``, ``check_parameter_count``).
+    """
+    get_family(config.family).check(config.num_patterns, rig.rows, rig.cols)
+    start = default_vector(config.family, config.num_patterns, rig.rows, rig.cols, config.start, config.seed).numpy()
+    check_parameter_count(config.algorithm, start.size)
+    return start
+
+
 def _search(config: SearchConfig, out: Path, logdir: Path | None, progress: bool) -> dict:
     from train.figures import save_figure
 
     check_logdir(logdir)  # before the scenes, which can take a while
     rig = load_rig(config.rig)
+    start = check_search_setup(config, rig)  # before the scenes, which can take minutes
     family = get_family(config.family)
-    family.check(config.num_patterns, rig.rows, rig.cols)
     parameters = family.parameters(config.num_patterns, rig.rows, rig.cols, config.start, config.seed)
     names = [p.name for p in parameters]
     low, high = family.bounds(config.num_patterns, rig.rows, rig.cols)
-    start = default_vector(config.family, config.num_patterns, rig.rows, rig.cols, config.start, config.seed).numpy()
-    check_parameter_count(config.algorithm, start.size)  # before the scenes, which can take minutes
     trace, partial = trace_path(out), partial_trace_path(out)
     scenes = prepare_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed)
     objective = PatternObjective(config.family, config.num_patterns, scenes, rig.rows, rig.cols, config.noise_scale,
