@@ -583,6 +583,12 @@ def test_search_command_writes_trace_and_tensorboard_log(tmp_path, scene_file, c
     assert np.allclose(values, [float(row.split(",")[-2]) for row in rows], rtol=1e-5)
     assert np.allclose(bests, np.minimum.accumulate(values), rtol=1e-6)
     assert run(argv[:-1] + [str(tmp_path / "other.npz"), "--maxeval", "0"]) == 2
+    # A search started over into the same log folder (e.g. after an interruption) hides the earlier evaluations.
+    assert run(argv[:-1] + [str(tmp_path / "again.npz")]) == 0
+    events = EventAccumulator(str(logdir))
+    events.Reload()
+    steps = [event.step for event in events.Scalars("search/mae_deg")]
+    assert steps == list(range(len(steps))) and len(steps) == len(rows)
 
 
 def test_review_fixes_rig_values_stale_captures_and_logdir(tmp_path, scene_file, capsys, monkeypatch):

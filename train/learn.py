@@ -443,7 +443,7 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
         start_step, val_history = state["step"], state["val_history"]
         loss_value = state.get("loss", float("nan"))
         earlier_seconds = state.get("seconds", 0.0)
-    writer = summary_writer(logdir, start_step)
+    writer = summary_writer(logdir, start_step + 1)  # steps are logged from 1
     ps_config = UnrolledPSConfig()
     eval_settings = EvalSettings(noise_scale=config.noise_scale, seed=config.seed + 7919)
     bar = tqdm(range(start_step, config.steps), initial=start_step, total=config.steps, desc=f"learning M={config.num_patterns}", disable=not progress, unit="step")
@@ -494,16 +494,16 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
     return TrainResult(learned, val_history, loss_value, earlier_seconds + time.perf_counter() - began)
 
 
-def summary_writer(logdir: Path | None, start_step: int | None = None):
+def summary_writer(logdir: Path | None, first_new_step: int | None = None):
     """A TensorBoard writer for the folder ``logdir`` (created if needed), or None without one.
-    With ``start_step`` (a learning run that starts after that many steps, logged from step 1),
-    the events an earlier run logged for the later steps are hidden: they are logged again."""
+    With ``first_new_step``, the events an earlier run logged in the folder at that step and later
+    are hidden: this run logs them again (a resumed learning run, a search started over)."""
     name = check_logdir(logdir)
     if name is None:
         return None
     from torch.utils.tensorboard import SummaryWriter
 
-    return SummaryWriter(name, purge_step=None if start_step is None else start_step + 1)
+    return SummaryWriter(name, purge_step=first_new_step)
 
 
 def check_logdir(logdir: Path | None) -> str | None:
