@@ -88,10 +88,10 @@ class Scene:
                 (a purely specular object: every pixel would be dark).
         """
         if self.diffuse is None:
-            raise InputError(f"scene {self.name} has no separate diffuse stack")
+            raise InputError(f"{self.label} has no separate diffuse stack")
         diffuse = np.asarray(self.diffuse, dtype=self.olat.dtype)
         if not float(diffuse[:, self.mask].max(initial=0.0)) > 0:
-            raise InputError(f"scene {self.name}: its diffuse stack is zero inside the mask (a purely specular object)")
+            raise InputError(f"{self.label}: its diffuse stack is zero inside the mask (a purely specular object)")
         return dataclasses.replace(self, olat=diffuse, specular=None)
 
     def points(self, working_distance: float, dtype=torch.float32) -> torch.Tensor:

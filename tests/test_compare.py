@@ -665,7 +665,8 @@ def test_specular_free_evaluation_is_the_evaluation_of_the_diffuse_scenes(scenes
     assert [scene["mae"] for scene in methods[0].specular_free["scenes"]] == direct
 
     missing = dataclasses.replace(raw[1], diffuse=None)
-    assert specular_free_scenes([raw[0], missing], rig) == (None, f"scene {missing.name} has no separate diffuse stack")
+    assert specular_free_scenes([raw[0], missing], rig) == (None, f"{missing.label} has no separate diffuse stack")
+    assert "file" in missing.meta and missing.meta["file"] in missing.label  # the file the user can find, not only the meta name
     metal = dataclasses.replace(raw[1], diffuse=np.zeros_like(raw[1].diffuse))
     assert "zero inside the mask" in specular_free_scenes([metal], rig)[1]
     assert raw[0].without_specular().olat.dtype == raw[0].olat.dtype
