@@ -450,7 +450,7 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     # the heuristic pattern files included (they used to be rewritten before the refusal).
     before = {path: path.read_bytes() for path in (tmp_path / "patterns").glob("*.npz")}
     changed = tiny_config(scenes, learned={"steps": 3, "val_every": 0, "pixels_per_scene": 64}, heuristic_preset="ddps")
-    with pytest.raises(InputError, match="another config"):
+    with pytest.raises(InputError, match=r"another config \(settings that differ: steps\)"):
         run_compare(changed, tmp_path, progress=False)
     assert {path: path.read_bytes() for path in (tmp_path / "patterns").glob("*.npz")} == before
     # A rerun interrupted part-way (another heuristic preset and no specular-free check, stopped

@@ -15,7 +15,7 @@ from capture_sim.errors import DisplexWarning, InputError
 from patterns.families import get_family, make_patterns
 from patterns.io import load_patterns
 from train.compare_config import CompareConfig, SearchRun
-from train.config_io import config_to_dict
+from train.config_io import changed_keys, config_to_dict
 from train.learn import TrainConfig, auto_init_family, changed_files, initial_patterns, input_fingerprints, train_patterns
 from train.search import check_search_setup, run_search, trace_chart_path
 
@@ -83,8 +83,12 @@ def _reusable(path: Path, run_config, what: str) -> dict | None:
 def _stale_reason(path: Path, run_config) -> str | None:
     """Why the existing output ``path`` cannot stand for a run of ``run_config``, or None."""
     _, meta = load_patterns(path)
-    if meta.get("config") != config_to_dict(run_config):
-        return "made with another config"
+    recorded_config, wanted = meta.get("config"), config_to_dict(run_config)
+    if recorded_config != wanted:
+        # A learning run's val_scenes are the test scenes, its scenes the training scenes: a
+        # changed scene list shows there.
+        changed = changed_keys(recorded_config, wanted)
+        return "made with another config" + (f" (settings that differ: {', '.join(changed)})" if changed else "")
     # Records of earlier versions held the scene files only: such a run cannot show it was made
     # from the current rig and init files, so it is not reused.
     recorded, current = _run_record(path).get("input_files"), input_fingerprints(run_config)

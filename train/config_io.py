@@ -140,3 +140,11 @@ def config_to_dict(config) -> dict:
             value = [str(v) if isinstance(v, Path) else json_value(v) for v in value]
         out[field.name] = json_value(value)
     return out
+
+
+def changed_keys(recorded, wanted: dict) -> list[str]:
+    """The keys, sorted, whose values differ between a recorded config dict (``config_to_dict``
+    of an earlier run; anything else counts as no record: []) and ``wanted``."""
+    if not isinstance(recorded, dict):
+        return []
+    return sorted(key for key in set(recorded) | set(wanted) if recorded.get(key) != wanted.get(key))

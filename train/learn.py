@@ -39,7 +39,7 @@ from patterns.parameterization import keep_movable, logits_to_patterns, patterns
 from reconstruct.photometric_stereo import solve_ps
 from reconstruct.unrolled_ps import UnrolledPSConfig, solve_ps_unrolled
 from train.capture import capture_scene, scene_exposure
-from train.config_io import config_to_dict
+from train.config_io import changed_keys, config_to_dict
 from train.evaluate import EvalSettings, evaluate_scene, mean_mae
 from train.scene_pixels import ScenePixels, ShuffledPixels, scene_pixels, shuffle_pixels
 from train.rerender import rerender_loss
@@ -370,7 +370,7 @@ def load_checkpoint(checkpoint: Path, resolved: dict) -> dict:
     if not isinstance(state, dict) or not all(key in state for key in CHECKPOINT_KEYS):
         raise InputError(f"checkpoint {checkpoint} is not a displex training checkpoint; {_AFRESH}")
     if state["config"] != resolved:
-        changed = sorted(key for key in resolved if state["config"].get(key) != resolved[key]) if isinstance(state["config"], dict) else []
+        changed = changed_keys(state["config"], resolved)
         if changed == ["input_files"]:
             files = changed_files(state["config"]["input_files"], resolved["input_files"])
             raise InputError(f"checkpoint {checkpoint} was made from input files (scenes, start patterns, rig) that were rewritten, "
