@@ -157,7 +157,9 @@ class PSConfig(SolverSettings):
     (``SolverSettings``) and the albedo/normal alternation's."""
 
     max_alternations: int = 50
-    """Cap on albedo/normal alternations per shadow mask (usually a few suffice)."""
+    """Cap on albedo/normal alternations per shadow mask (usually a few suffice). Below float64, a
+    pixel whose moves stop shrinking above the rounding level gets up to ``min(max_alternations,
+    pixel_solve.WIDE_ALTERNATIONS)`` more in float64 (``pixel_solve.alternate``)."""
     tolerance_deg: float = 1e-3
     """Alternations stop when no pixel's normal moves by more than this (degrees)."""
 

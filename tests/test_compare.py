@@ -2,6 +2,7 @@
 import dataclasses
 import json
 import os
+import shutil
 import warnings
 from pathlib import Path
 
@@ -123,6 +124,8 @@ def test_config_errors(scenes):
         tiny_config(scenes, learned={"steps": -1}, learned_at={"2": {"steps": 3}})
     with pytest.raises(InputError, match="pattern_counts must list at least one M"):
         tiny_config(scenes, pattern_counts=[], rerender_counts=[])
+    with pytest.raises(InputError, match="rerender_counts M = 2 have no normal-only learning run"):
+        tiny_config(scenes, learned_counts=[], rerender_counts=[2])
 
 
 def test_an_output_folder_holding_the_source_package_is_refused(scenes, tmp_path):
@@ -279,6 +282,26 @@ def test_a_run_that_cannot_start_stops_the_comparison_before_learning(scenes, tm
         collect_methods(config, load_rig(), tmp_path / "patterns", progress=False)
 
 
+def test_a_search_run_again_logs_into_an_emptied_folder_of_its_own(scenes, tmp_path):
+    """A search that runs again (its earlier run interrupted, or its output deleted) replaces its
+    TensorBoard folder: the evaluations of the earlier run would overlap the new ones."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from train.compare_methods import searched_method
+
+    config = tiny_config(scenes, learned_counts=[], search=[{"family": "tri_complementary", "M": 2, "algorithm": "LN_SBPLX", "maxeval": 3,
+                                                             "pixels_per_scene": 32}])
+    run, logdir, patterns = config.search[0], tmp_path / "tensorboard", tmp_path / "patterns"
+    for _ in range(2):
+        shutil.rmtree(patterns, ignore_errors=True)
+        patterns.mkdir()
+        searched_method(config, run, patterns, progress=False, logdir=logdir)
+    events = EventAccumulator(str(logdir / run.name))
+    events.Reload()
+    assert [event.step for event in events.Scalars("search/mae_deg")] == [0, 1, 2]
+    assert len(list((logdir / run.name).glob("events*"))) == 1
+
+
 def test_unreadable_external_file_stops_the_comparison_before_learning(scenes, tmp_path, monkeypatch):
     bad = tmp_path / "bad.npy"
     np.save(bad, np.full((2, 9, 16, 3), 1.5))  # set values outside [0, 1]
@@ -319,6 +342,7 @@ def test_summary_tables_against_plain_computation():
     assert [_seconds(value) for value in (0.2, 0.0934, 1.0, 9.96, 12.4, 250.0)] == ["0.20", "0.093", "1.0", "10", "12", "250"]
     assert pivot_cell(dict(rows["a"], invalid_fraction=0.9999), "mae", 2) == "20.00 (99.99% invalid)"  # nearly all: the placeholder
     assert pivot_cell(dict(rows["a"], invalid_fraction=0.98), "mae", 2) == "20.00"
+    assert pivot_cell(dict(rows["a"], invalid_fraction=0.99996), "mae", 2) == "20.00 (99.99% invalid)"  # not rounded up to 100%
     summary = summary_tables(results)
     by_noise = {c["noise_scale"]: c for c in summary["learned_vs_heuristic"]}
     assert by_noise[0.5]["best_heuristic"] == "a" and by_noise[0.5]["ratio"] == pytest.approx(8.5 / 10.0)

@@ -13,7 +13,7 @@ import torch
 import reconstruct.basis_render as basis_render
 import reconstruct.inverse_render as inverse_render
 from capture_sim.errors import InputError
-from capture_sim.rig import Falloff, load_rig
+from capture_sim.rig import RIG_DIR, Falloff, load_rig
 from capture_sim.render import render_olat
 from capture_sim.scene import save_scene
 from capture_sim.synth import synthesize_scene
@@ -809,6 +809,15 @@ def test_run_invrender_refuses_a_scene_too_bright_for_float32_naming_the_olat_st
     np.savez(tmp_path / "bright.npz", **{**arrays, "olat": arrays["olat"].astype(np.float32) * np.float32(1e30)})
     with pytest.raises(InputError, match="rescale the scene's OLAT stack"):
         run_invrender(InvRenderConfig(scene=tmp_path / "bright.npz", basis="1", iterations=1))
+    # Black patterns on a rig without backlight: the patterns are the cause, not the scene.
+    rig_text = (RIG_DIR / "panel-55in-4x8.toml").read_text().replace("backlight = 0.025", "backlight = 0.0")
+    (tmp_path / "dark.toml").write_text(rig_text)
+    np.save(tmp_path / "black.npy", np.zeros((4, 4, 8, 3), dtype=np.float32))
+    scene = synthesize_scene("cylinder", "lambertian", load_rig(tmp_path / "dark.toml"), height=12, width=14, seed=0)
+    save_scene(scene, tmp_path / "cyl.npz")
+    with pytest.raises(InputError, match="the patterns emit no light"):
+        run_invrender(InvRenderConfig(scene=tmp_path / "cyl.npz", rig=str(tmp_path / "dark.toml"), patterns=str(tmp_path / "black.npy"),
+                                      basis="1", iterations=1))
 
 
 def test_run_invrender_missing_scene_raises(tmp_path):

@@ -85,6 +85,11 @@ def test_tensorboard_log_of_a_resumed_run_has_each_step_once_with_the_rate_it_us
     rates = [event.value for event in events.Scalars("train/learning_rate")]
     assert rates[0] == pytest.approx(config.learning_rate)  # step 1 uses the initial rate
     assert rates[-1] > config.learning_rate * config.final_lr_fraction * 1.0001  # the last step does not use the final rate yet
+    # A fresh run into the same folder (another output) hides nothing of the runs there.
+    train_patterns(dataclasses.replace(config, steps=2), tmp_path / "q.npz", progress=False, logdir=tmp_path / "tb")
+    events = EventAccumulator(str(tmp_path / "tb"))
+    events.Reload()
+    assert len(events.Scalars("train/loss")) == 6 + 2
 
 
 def test_learning_lowers_training_loss(scene_dirs):

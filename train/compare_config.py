@@ -164,6 +164,10 @@ class CompareConfig:
         for name, values in lists.items():
             if len(set(values)) != len(values):
                 raise InputError(f"{name} lists a value twice: {list(values)}")
+        alone = sorted(set(self.rerender_counts) - set(self.learned_pattern_counts()))
+        if alone:  # the report compares each with the normal-only run of its M and first seed
+            raise InputError(f"rerender_counts M = {', '.join(map(str, alone))} have no normal-only learning run to compare with "
+                             f"(learned_counts {sorted(self.learned_pattern_counts())}): add them there")
         learned_counts = set(self.learned_pattern_counts()) | set(self.rerender_counts)
         unused = sorted((set(self.learned_at) | set(self.learned_seeds_at)) - learned_counts)
         if unused:

@@ -4,6 +4,7 @@ pattern files and the OLAT reference."""
 from __future__ import annotations
 
 import json
+import shutil
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -175,6 +176,8 @@ def searched_method(config: CompareConfig, run: SearchRun, pattern_dir: Path, pr
     existing = _reusable(path, search_config, "searched patterns")
     if existing is None:
         _record_path(path).unlink(missing_ok=True)
+        if logdir is not None:  # the comparison's own folder for this run: an interrupted run's evaluations go
+            shutil.rmtree(logdir / run.name, ignore_errors=True)
         meta = run_search(search_config, path, logdir=None if logdir is None else logdir / run.name, progress=progress)
         patterns = load_patterns(path)[0]
         write_json(_record_path(path), {"seconds": meta["seconds"], "input_files": input_fingerprints(search_config)})

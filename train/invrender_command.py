@@ -173,6 +173,8 @@ def _prepare_data(config: InvRenderConfig, scene, rig, pixels, split) -> _Data:
             captures, emission, exposure = capture.captures, capture.emission, capture.exposure
             description = {"patterns": str(config.patterns), "M": int(values.shape[0]), "pattern_meta": pattern_meta}
     peak = float(emission.amax())
+    if not peak > 0:
+        raise InputError(f"the patterns emit no light on rig {rig.name} (black patterns and no backlight): nothing to fit")
     if not EMISSION_RANGE[0] <= peak <= EMISSION_RANGE[1]:  # the fit's own check would speak of an emission the user never set
         raise InputError(f"{scene.label}: the captures need an emission peak of {peak:.3g} (exposure x display emission), outside "
                          f"[{EMISSION_RANGE[0]:g}, {EMISSION_RANGE[1]:g}] where the inverse renderer's float32 albedos stay "

@@ -443,7 +443,9 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
         start_step, val_history = state["step"], state["val_history"]
         loss_value = state.get("loss", float("nan"))
         earlier_seconds = state.get("seconds", 0.0)
-    writer = summary_writer(logdir, start_step + 1)  # steps are logged from 1
+    # A resumed run hides the steps it redoes (logged from 1); a fresh one hides nothing: other
+    # runs may share the folder.
+    writer = summary_writer(logdir, start_step + 1 if start_step else None)
     ps_config = UnrolledPSConfig()
     eval_settings = EvalSettings(noise_scale=config.noise_scale, seed=config.seed + 7919)
     bar = tqdm(range(start_step, config.steps), initial=start_step, total=config.steps, desc=f"learning M={config.num_patterns}", disable=not progress, unit="step")
@@ -497,7 +499,7 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
 def summary_writer(logdir: Path | None, first_new_step: int | None = None):
     """A TensorBoard writer for the folder ``logdir`` (created if needed), or None without one.
     With ``first_new_step``, the events an earlier run logged in the folder at that step and later
-    are hidden: this run logs them again (a resumed learning run, a search started over)."""
+    are hidden, whichever run logged them: this run logs them again (a resumed learning run)."""
     name = check_logdir(logdir)
     if name is None:
         return None

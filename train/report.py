@@ -252,7 +252,8 @@ def invalid_note(fraction: float) -> str:
     placeholder normal (at least 99% of the pixels invalid); '' otherwise."""
     if fraction >= 1.0:
         return " (all invalid)"
-    return f" ({100 * fraction:.4g}% invalid)" if fraction >= 0.99 else ""
+    # Rounded down: 0.99996 is not 100%.
+    return f" ({math.floor(fraction * 1e4) / 100:g}% invalid)" if fraction >= 0.99 else ""
 
 
 def all_invalid(row: dict) -> bool:
@@ -555,20 +556,20 @@ def _sizes_text(results: dict) -> str:
 
 
 def _measurement_caption(results: dict) -> str:
-    default = results["default_noise"]
+    reference = any(method["kind"] == "reference" for method in results["methods"])
     return (
         f"Measured on {len(results['test_scenes'])} held-out test scenes{_sizes_text(results)} ({results['test_pixels']} masked pixels in all; "
         f"{', '.join(results['test_scenes'])}), rig {results['rig']} ({results['grid'][0]} x {results['grid'][1]} superpixels). "
         "Captures are simulated from the OLAT stacks (display gamma and backlight, Poisson-Gaussian noise at the given scale "
         "times the rig's noise variances, clipping, quantisation) with auto exposure per scene, then reconstructed with the "
-        f"analytic photometric stereo{_solver_text(results)} (the OLAT reference: Woodham least squares on all K images). "
+        f"analytic photometric stereo{_solver_text(results)}{' (the OLAT reference: Woodham least squares on all K images)' if reference else ''}. "
         f"MAE and median are angular normal errors in degrees over {_pixels_text(results)}, averaged over scenes (each scene "
-        f"weighs the same). {_capture_text(results)} Compute time = wall seconds per scene of the reconstruction "
+        f"weighs the same). {_capture_text(results, reference)} Compute time = wall seconds per scene of the reconstruction "
         f"of {_pixels_short(results)} on this machine's CPU (the simulation of the captures, which the rig's camera replaces, "
         f"is left out){_timing_text(results)}, the median over the method's evaluations at every noise level; only "
         "differences of 2x or more are beyond the noise of such timings. Exposure = mean auto-exposure gain. Cost = wall seconds of a "
         f"learning run (its steps see the training scenes only; the time includes loading the held-out scenes and validating on them) "
-        f"or of a search. Learning and searches used noise scale {default:g}. {_learning_text(results)}"
+        f"or of a search.{_trained_noise_text(results)} {_learning_text(results)}"
         f"{_preset_text(results)}"
     )
 
@@ -634,6 +635,16 @@ def noise_verdict(low_noise_ratio: float, high_noise_ratio: float) -> str:
     return "the learned advantage " + ("grows" if change < -TIE_MARGIN else "shrinks" if change > TIE_MARGIN else "stays about the same")
 
 
+def _trained_noise_text(results: dict) -> str:
+    """' Learning and searches used noise scale 1.' where the comparison learned or searched."""
+    kinds = {method["kind"] for method in results["methods"]}
+    done = [what for what, kind in (("Learning", {"learned", "rerender"}), ("searches", {"search"})) if kinds & kind]
+    if not done:
+        return ""
+    text = " and ".join(done) if len(done) == 2 else ("Learning" if done == ["Learning"] else "Searches")
+    return f" {text} used noise scale {results['default_noise']:g}."
+
+
 def _learning_text(results: dict) -> str:
     """What the learned rows were learned with: steps and start per M, and the training scenes."""
     runs = sorted({(m["M"], m["info"].get("steps"), m["info"].get("init")) for m in results["methods"] if m["kind"] in ("learned", "rerender")},
@@ -645,18 +656,22 @@ def _learning_text(results: dict) -> str:
     return f"Learning: {'; '.join(f'M = {count}: {steps} steps from {init}' for count, steps, init in runs)}; training scenes: {where}. "
 
 
-def _capture_text(results: dict) -> str:
+def _capture_text(results: dict, reference: bool = True) -> str:
     return (f"Capture time = M x exposure time per image: {results['exposure_ms']:g} ms ({results['exposure_ms_source']}) for the "
             "all-white display, times e / e_white for a pattern set that auto exposure gives gain e (the noise is added after e "
-            "in full-scale units, so e acts as integration time: dim patterns take longer), averaged over scenes. The OLAT "
-            "reference's gain multiplies the raw OLAT stack instead of the display's emission, so its e_white is the all-white "
-            "gain times the emission of a superpixel lit at 1, s mean_k (1 + B_k)^gamma (results.json: white_exposures_olat).")
+            "in full-scale units, so e acts as integration time: dim patterns take longer), averaged over scenes."
+            + (" The OLAT reference's gain multiplies the raw OLAT stack instead of the display's emission, so its e_white is the "
+               "all-white gain times the emission of a superpixel lit at 1, s mean_k (1 + B_k)^gamma (results.json: white_exposures_olat)."
+               if reference else ""))
 
 
 def _preset_text(results: dict) -> str:
+    if not any(method["kind"] == "heuristic" for method in results["methods"]):
+        return ""
     preset = results["config"].get("heuristic_preset", "default")
     off, on = PRESET_LEVELS[preset]
-    published = "the published levels" if preset == "ddps" else "the published definitions use 0.1 and 0.9: preset ddps"
+    published = ("the published levels; tri_gradient keeps 0 and 1, as published" if preset == "ddps"
+                 else "the published definitions use 0.1 and 0.9: preset ddps")
     return f"Heuristic families use preset {preset}: off level {off:g}, on level {on:g} where a family has both ({published})."
 
 
@@ -707,7 +722,8 @@ def pivot_cell(row: dict, key: str, digits: int | None) -> str:
     """One cell of a method x M table: the row's value (to ``digits`` decimals, or as a timing to
     two significant digits when ``digits`` is None), and how many seeds it averages when more
     than one (a series can average several seeds at one M and one at another). An error where
-    every pixel was invalid is marked: it measures the default normal, not a reconstruction."""
+    every pixel, or at least 99% of them, was invalid is marked (``invalid_note``): it measures
+    the placeholder normal, not a reconstruction."""
     note = invalid_note(row.get("invalid_fraction", 0.0)) if key in ("mae", "median") else ""
     return (_seconds(row[key]) if digits is None else _fmt(row[key], digits)) + note + (f" (mean of {row['seeds']} seeds)" if row["seeds"] > 1 else "")
 
@@ -877,7 +893,8 @@ def summary_section(results: dict, summary: dict) -> list[str]:
     if seeds:
         counts = sorted(set(seeds.values()))
         if len(counts) == 1:
-            per_m = f"{counts[0]} learning seed{'s' if counts[0] > 1 else ''} at every M"
+            where = "every M" if set(seeds) == set(results["pattern_counts"]) else "M = " + ", ".join(map(str, sorted(seeds)))
+            per_m = f"{counts[0]} learning seed{'s' if counts[0] > 1 else ''} at {where}"
         else:
             per_m = "learning seeds " + ", ".join(f"{seeds[count]} at M = {count}" for count in sorted(seeds))
         learning = f", learned patterns from {per_m}" + ("" if max(counts) > 1 else " (no seed spread measured)")
@@ -1009,9 +1026,10 @@ def _search_section(results: dict, out_dir: Path) -> list[str]:
     if not searches:
         return []
     lines = ["## NLopt searches", "", "Training-scene objective (fixed pixel subset and noise draw), then test MAE at the default noise. "
-             "The start is the family's parameters of preset default (levels 0 and 1) with its edges softened to the search's "
-             "sharpness (so that they get gradients), which can score worse than the family's binary patterns in the tables above. LN_BOBYQA spends "
-             "its first 2 P + 1 evaluations (P parameters) on points around the start before it steps:", ""]
+             "The start is the family's parameters of preset default (levels 0 and 1 where it has levels) with its edges softened to the "
+             "search's sharpness (so that they get gradients), which can score worse than the family's binary patterns in the tables above."
+             + (" LN_BOBYQA spends its first 2 P + 1 evaluations (P parameters) on points around the start before it steps."
+                if any(method.get("series", "").endswith(":LN_BOBYQA") for method in searches) else ""), ""]
     body = []
     for method in searches:
         info = method["info"]

@@ -615,7 +615,7 @@ def _search(config: SearchConfig, out: Path, logdir: Path | None, progress: bool
     # Every input is checked: now a partial trace left by an earlier interrupted run goes, as it
     # would pass for this run's if this one were interrupted before its first flush.
     _remove_file(partial)
-    writer = summary_writer(logdir, 0)  # a search starts over: an interrupted one's evaluations are hidden
+    writer = summary_writer(logdir)
     bar = tqdm(total=config.maxeval, desc=f"search {config.family} M={config.num_patterns} {config.algorithm}", unit="eval", disable=not progress)
     seen: list = []
 
