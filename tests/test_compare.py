@@ -805,6 +805,33 @@ def test_families_section_says_what_each_family_is_and_where_every_pixel_was_inv
     assert families_section({"default_noise": 1.0, "methods": []}) == []
 
 
+def test_report_text_follows_the_config_that_ran():
+    """No sentence about learning, searches, the OLAT reference, heuristic presets or BOBYQA where
+    the comparison had none; seeds 'at every M' only where learning ran at every M."""
+    from train.report import _capture_text, _measurement_caption, _preset_text, _search_section, _trained_noise_text, summary_section
+
+    results = fake_results()
+    results.update(test_scenes=["x"], test_pixels=10, rig="r", grid=[2, 3], exposure_ms=440.0, exposure_ms_source="rig",
+                   config={"heuristic_preset": "default"})
+    for method in results["methods"]:
+        method["info"] = {"steps": 2, "init": "tri_complementary"}
+    assert _trained_noise_text(results) == " Learning and searches used noise scale 0.5."
+    assert "OLAT reference" not in _measurement_caption(results) and "OLAT reference" not in _capture_text(results, False)
+    assert "preset default" in _preset_text(results)
+    only_heuristics = dict(results, methods=[m for m in results["methods"] if m["kind"] == "heuristic"])
+    assert _trained_noise_text(only_heuristics) == "" and "used noise scale" not in _measurement_caption(only_heuristics)
+    assert _preset_text(dict(results, methods=[m for m in results["methods"] if m["kind"] != "heuristic"])) == ""
+    assert _trained_noise_text(dict(results, methods=[m for m in results["methods"] if m["kind"] == "search"])) == " Searches used noise scale 0.5."
+    searched = dict(results["methods"][-1], series="search:tri_complementary:LN_SBPLX", M=2,
+                    info={"trace_png": "t.png", "evaluations": 3, "start_mae": 1.0, "best_mae": 0.5, "stop_reason": "maxeval"})
+    assert "2 P + 1" not in "\n".join(_search_section(dict(results, methods=[searched]), Path(".")))
+    bobyqa = dict(searched, series="search:tri_complementary:LN_BOBYQA")
+    assert "2 P + 1" in "\n".join(_search_section(dict(results, methods=[bobyqa]), Path(".")))
+    wider = dict(results, pattern_counts=[2, 4])  # learning (and every method) ran at M = 2 only
+    text = "\n".join(summary_section(wider, summary_tables(wider)))
+    assert "2 learning seeds at M = 2" in text and "every M" not in text and "- M = 4: no method ran at this M." in text
+
+
 def test_summary_states_the_answer_first_against_plain_computation():
     """Per M, the most accurate method and the learned / best-heuristic ratio with the test scenes
     the learned patterns win (mean over seeds per scene); the evidence behind them."""
