@@ -530,11 +530,19 @@ def test_test_scenes_listed_twice_are_refused_and_training_scenes_among_them_war
         run_compare(twice, tmp_path, progress=False)
     leaking = tiny_config(scenes, test_scenes=[str(scenes / "train")])
     with pytest.warns(DisplexWarning, match=r"test scene\(s\) are also training scenes"):
-        _check_scene_lists(leaking)
+        shared = _check_scene_lists(leaking)
+    assert shared == sorted(path.name for path in (scenes / "train").glob("*.npz"))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        _check_scene_lists(dataclasses.replace(leaking, learned_counts=[], search=()))  # nothing learned there: no warning
-        _check_scene_lists(tiny_config(scenes))
+        assert _check_scene_lists(dataclasses.replace(leaking, learned_counts=[], search=())) == []  # nothing learned there: no warning
+        assert _check_scene_lists(tiny_config(scenes)) == []
+    # The report says which test scenes are not held out.
+    from train.report import _measurement_caption
+
+    results = {"test_scenes": ["a", "b"], "test_pixels": 5, "rig": "r", "grid": [2, 3], "methods": [], "default_noise": 1.0,
+               "exposure_ms": 440.0, "exposure_ms_source": "rig", "config": {}, "test_files_also_trained": ["a.npz"]}
+    assert _measurement_caption(results).startswith("Measured on 2 test scenes (1 of them also used for learning or searches, so not held out: a.npz)")
+    assert _measurement_caption(dict(results, test_files_also_trained=[])).startswith("Measured on 2 held-out test scenes")
 
 
 def test_demo_reuses_only_a_scene_set_of_its_own_settings(tmp_path):

@@ -364,7 +364,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
         if Path(item.path).resolve().is_relative_to(pattern_dir.resolve()):
             raise InputError(f"[[external]] {item.name}: {item.path} lies in {pattern_dir}, whose files compare rewrites; "
                              "copy it elsewhere or choose another output folder")
-    _check_scene_lists(config)
+    trained_test_files = _check_scene_lists(config)
     # Scenes made for another rig than the config's default need that rig; external pattern sets
     # made for another may be compared on purpose (transfer), with a warning.
     rig_for_inputs(None if config.rig == DEFAULT_RIG else config.rig, (), [*config.train_scenes, *config.test_scenes],
@@ -406,6 +406,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
         "pattern_counts": list(config.pattern_counts),
         "test_scenes": [pixels.name for pixels in test_scenes],
         "test_pixels": sum(pixels.num_pixels for pixels in test_scenes),
+        "test_files_also_trained": trained_test_files,  # test scene files that learning or searches also used
         "test_image_sizes": sorted({f"{pixels.transport.height} x {pixels.transport.width}" for pixels in test_scenes}),
         "methods": [method_record(method, out_dir) for method in methods],
         "specular_free": specular_free,
@@ -434,9 +435,10 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     return results
 
 
-def _check_scene_lists(config: CompareConfig) -> None:
+def _check_scene_lists(config: CompareConfig) -> list[str]:
     """Refuse a test scene file listed twice (it would weigh twice in every mean); warn when a
-    test scene is also a training scene of the learning or search runs (its MAE is not held out)."""
+    test scene is also a training scene of the learning or search runs (its MAE is not held out)
+    and return the names of such files (the report says so too)."""
     test_files = [path.resolve() for path in scene_paths(config.test_scenes)]
     repeated = sorted({str(path) for path in test_files if test_files.count(path) > 1})
     if repeated:
@@ -446,6 +448,8 @@ def _check_scene_lists(config: CompareConfig) -> None:
         if shared:
             warnings.warn(f"{len(shared)} test scene(s) are also training scenes ({', '.join(path.name for path in shared)}): "
                           "their MAE is not measured on held-out scenes", DisplexWarning, stacklevel=2)
+        return [path.name for path in shared]
+    return []
 
 
 def _scene_set_matches(index_path: Path, rig, config: CompareConfig) -> bool:

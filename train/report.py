@@ -555,10 +555,20 @@ def _sizes_text(results: dict) -> str:
     return f" of {' and '.join(sizes)} pixels" if sizes else ""
 
 
+def _held_out_text(results: dict) -> str:
+    """'4 held-out test scenes', or '4 test scenes (2 of them also used for learning or searches,
+    so not held out: a.npz, b.npz)' where the config listed test scene files among the training
+    scenes."""
+    count, shared = len(results["test_scenes"]), results.get("test_files_also_trained") or []
+    if not shared:
+        return f"{count} held-out test scenes"
+    return f"{count} test scenes ({len(shared)} of them also used for learning or searches, so not held out: {', '.join(shared)})"
+
+
 def _measurement_caption(results: dict) -> str:
     reference = any(method["kind"] == "reference" for method in results["methods"])
     return (
-        f"Measured on {len(results['test_scenes'])} held-out test scenes{_sizes_text(results)} ({results['test_pixels']} masked pixels in all; "
+        f"Measured on {_held_out_text(results)}{_sizes_text(results)} ({results['test_pixels']} masked pixels in all; "
         f"{', '.join(results['test_scenes'])}), rig {results['rig']} ({results['grid'][0]} x {results['grid'][1]} superpixels). "
         "Captures are simulated from the OLAT stacks (display gamma and backlight, Poisson-Gaussian noise at the given scale "
         "times the rig's noise variances, clipping, quantisation) with auto exposure per scene, then reconstructed with the "
