@@ -840,6 +840,22 @@ def test_report_text_follows_the_config_that_ran():
     assert "2 learning seeds at M = 2" in text and "every M" not in text and "- M = 4: no method ran at this M." in text
 
 
+def test_external_and_searched_sets_never_share_a_style_in_one_chart():
+    """Styles used to come from a hash of the name: 'trigrad_copy' and 'ddps_M4' were both brown squares."""
+    from matplotlib.colors import to_hex
+
+    from train.report import chart_mae_vs_cost
+
+    rows = aggregate_rows(fake_results(), 0.5)
+    template = next(row for row in rows if row["series"] == "a")
+    names = ["trigrad_copy", "ddps_M4", "e3", "e4", "e5"]
+    assert sum(map(ord, names[0])) % 4 == sum(map(ord, names[1])) % 4  # the old collision
+    rows += [dict(template, kind="external", series=f"external:{name}", label=name) for name in names]
+    fig = chart_mae_vs_cost(rows, "compute_seconds", "compute (s)", "speed", "caption")
+    styles = {line.get_label(): (to_hex(line.get_color()), line.get_marker()) for line in fig.axes[0].get_lines() if line.get_label() in names}
+    assert len(styles) == len(names) and len(set(styles.values())) == len(names), styles
+
+
 def test_summary_states_the_answer_first_against_plain_computation():
     """Per M, the most accurate method and the learned / best-heuristic ratio with the test scenes
     the learned patterns win (mean over seeds per scene); the evidence behind them."""

@@ -216,10 +216,23 @@ _HEURISTIC_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:cyan", "tab:ol
 # each other in the cost charts, where colour alone did not tell them apart.
 _HEURISTIC_MARKERS = ("v", "^", "<", ">", "p", "d", "h", "1", "2")
 _OTHER_COLOURS = {"search": ("tab:purple", "darkviolet", "mediumorchid", "indigo"), "external": ("tab:brown", "peru", "saddlebrown", "rosybrown")}
+# After every colour of its kind, a series takes the next marker (search: D first, external: s).
+_OTHER_MARKERS = {"search": ("D", "d", "H", "8"), "external": ("s", "X", "h", "8")}
 
 
-def _style(kind: str, series: str = "") -> dict:
-    """Line style of a method: fixed per kind, colour fixed per series in every chart."""
+def _peers(rows: list[dict]) -> dict[str, list[str]]:
+    """Per kind, its series in the chart's rows, sorted: their ranks pick distinct styles
+    (``_style``), the same in every chart of one comparison, whose charts show the same methods."""
+    peers: dict = defaultdict(set)
+    for row in rows:
+        peers[row["kind"]].add(row["series"])
+    return {kind: sorted(names) for kind, names in peers.items()}
+
+
+def _style(kind: str, series: str = "", peers: dict | None = None) -> dict:
+    """Line style of a method: fixed per kind; colour (and, for heuristic families, marker) fixed
+    per series. Searches and external sets take their kind's colours in the order of their names
+    among ``peers`` (``_peers``), then markers: two never look alike in one chart."""
     style = dict(_KIND_STYLE.get(kind, {}))
     if kind == "heuristic":
         order = list(FAMILIES)
@@ -227,14 +240,17 @@ def _style(kind: str, series: str = "") -> dict:
         style["color"] = _HEURISTIC_COLOURS[index % len(_HEURISTIC_COLOURS)]
         style["marker"] = _HEURISTIC_MARKERS[index % len(_HEURISTIC_MARKERS)]
     elif kind in _OTHER_COLOURS:
-        colours = _OTHER_COLOURS[kind]
-        style["color"] = colours[sum(map(ord, series)) % len(colours)]
+        colours, markers = _OTHER_COLOURS[kind], _OTHER_MARKERS[kind]
+        names = (peers or {}).get(kind, [])
+        rank = names.index(series) if series in names else sum(map(ord, series))
+        style["color"] = colours[rank % len(colours)]
+        style["marker"] = markers[(rank // len(colours)) % len(markers)]
     return style
 
 
-def _marker_style(kind: str, series: str) -> dict:
+def _marker_style(kind: str, series: str, peers: dict | None = None) -> dict:
     """``_style`` for a scatter of markers: its line settings dropped."""
-    return {key: value for key, value in _style(kind, series).items() if key not in ("linewidth", "linestyle")}
+    return {key: value for key, value in _style(kind, series, peers).items() if key not in ("linewidth", "linestyle")}
 
 
 def _series(rows: list[dict]) -> dict:
@@ -301,7 +317,7 @@ def chart_mae_vs_patterns(rows: list[dict], caption: str):
     """MAE (deg) against M, one line per method; the OLAT reference as a horizontal line. Two
     panels: every method, and a close-up of the best ones (``close_up_limits``), which the
     full range squeezes into a few millimetres when some methods fail."""
-    limits = close_up_limits(rows)
+    limits, peers = close_up_limits(rows), _peers(rows)
     fig, axes = plt.subplots(1, 2, figsize=(12.5, 4.8))
     counts = sorted({row["M"] for row in rows if row["kind"] != "reference"})
     for ax in axes:
@@ -313,7 +329,7 @@ def chart_mae_vs_patterns(rows: list[dict], caption: str):
             # breaks there instead of joining it to real reconstructions.
             maes = [math.nan if all_invalid(row) else row["mae"] for row in values]
             errors = [row["mae_std"] for row in values]
-            ax.errorbar([row["M"] for row in values], maes, yerr=errors if kind == "learned" else None, label=label, capsize=3, **_style(kind, series))
+            ax.errorbar([row["M"] for row in values], maes, yerr=errors if kind == "learned" else None, label=label, capsize=3, **_style(kind, series, peers))
         _cross_out(ax, [(row["M"], row["mae"]) for row in rows if row["kind"] != "reference" and all_invalid(row)])
         ax.set_xticks(counts)
         ax.set_xlabel("number of patterns M (images)")
@@ -349,11 +365,11 @@ def plain_log_ticks(axis) -> None:
 def chart_mae_vs_cost(rows: list[dict], key: str, xlabel: str, title: str, caption: str):
     """Scatter of MAE (deg) against a cost per method and M (log x axis), labelled by M."""
     fig, ax = plt.subplots(figsize=(9.0, 4.8))
-    labelled = []
+    labelled, peers = [], _peers(rows)
     for (kind, label, series), values in _series(rows).items():
         xs = [max(row[key], 1e-6) for row in values]
         ys = [row["mae"] for row in values]
-        style = _marker_style(kind, series)
+        style = _marker_style(kind, series, peers)
         ax.plot(xs, ys, linestyle="none", markersize=7, label=label, **style)
         if kind != "heuristic":  # heuristics share their M's positions: labels there would pile up
             labelled += [(x, y, row["M"]) for x, y, row in zip(xs, ys, values)]
@@ -377,6 +393,7 @@ def chart_mae_vs_noise(results: dict, caption: str):
     fig, axes = plt.subplots(1, len(counts), figsize=(4.2 * len(counts), 6.0), squeeze=False, sharey=True)
     per_noise = {noise: aggregate_rows(results, noise) for noise in results["noise_scales"]}
     noises = sorted(per_noise)
+    peers = _peers([row for rows in per_noise.values() for row in rows])
     for ax, count in zip(axes[0], counts):
         keys = {}
         for noise in noises:
@@ -386,7 +403,7 @@ def chart_mae_vs_noise(results: dict, caption: str):
                     broken = all_invalid(row) and row["kind"] != "reference"  # crossed out below, as the reference is not
                     keys.setdefault((row["kind"], row["label"], row["series"]), []).append((noise, math.nan if broken else row["mae"]))
         for (kind, label, series), points in sorted(keys.items(), key=lambda item: _KIND_ORDER.get(item[0][0], 9)):
-            style = _style(kind, series)
+            style = _style(kind, series, peers)
             if kind == "reference":
                 style.update(linestyle="--", marker="*")
             ax.plot([p[0] for p in points], [p[1] for p in points], label=label, **style)
@@ -416,12 +433,12 @@ def chart_specular_free(rows: list[dict], free_rows: list[dict], caption: str):
     and M (log axes); the distance above the diagonal is the error due to specular reflection."""
     free = {(row["series"], row["M"]): row["mae"] for row in free_rows}
     fig, ax = plt.subplots(figsize=(9.0, 5.2))
-    labelled = []
+    labelled, peers = [], _peers(rows)
     for (kind, label, series), values in _series(rows).items():
         points = [(free[(row["series"], row["M"])], row["mae"], row["M"]) for row in values if (row["series"], row["M"]) in free]
         if not points:
             continue
-        style = _marker_style(kind, series)
+        style = _marker_style(kind, series, peers)
         ax.plot([p[0] for p in points], [p[1] for p in points], linestyle="none", markersize=7, label=label, **style)
         if kind != "heuristic":
             labelled += points
