@@ -630,6 +630,15 @@ def test_review_fixes_rig_values_stale_captures_and_logdir(tmp_path, scene_file,
     assert not (out / "meta.json").exists() and len(list(out.glob("capture_*.png"))) > 1
     assert run(["simulate", "--scene", str(scene_file), "--patterns", str(few), "--out", str(out), "--noise", "off"]) == 0
     assert sorted(p.name for p in out.glob("capture_*.png")) == ["capture_000.png"]
+    # A folder of someone's own capture_NNN.png (no meta.json, no captures.npy) is refused, not overwritten or pruned.
+    own = tmp_path / "own"
+    own.mkdir()
+    for index in (0, 1, 10):
+        (own / f"capture_{index:03d}.png").write_bytes(b"mine")
+    capsys.readouterr()
+    assert run(["simulate", "--scene", str(scene_file), "--patterns", str(few), "--out", str(own), "--noise", "off"]) == 2
+    assert "no meta.json of a simulate run" in capsys.readouterr().err
+    assert sorted((path.name, path.read_bytes()) for path in own.iterdir()) == [(f"capture_{i:03d}.png", b"mine") for i in (0, 1, 10)]
     blocker = tmp_path / "a_file"
     blocker.write_text("")
     capsys.readouterr()

@@ -820,6 +820,13 @@ def test_run_invrender_refuses_a_scene_too_bright_for_float32_naming_the_olat_st
                                       basis="1", iterations=1))
 
 
+def test_run_invrender_refuses_a_json_inside_its_tensorboard_folder(tmp_path, scene_file):
+    from train.invrender_command import InvRenderConfig, run_invrender
+
+    with pytest.raises(InputError, match="lies in --out's tensorboard folder"):
+        run_invrender(InvRenderConfig(scene=scene_file, out=tmp_path / "o", json=tmp_path / "o" / "tensorboard" / "x.json", basis="1", iterations=1))
+
+
 def test_run_invrender_missing_scene_raises(tmp_path):
     from train.invrender_command import InvRenderConfig, run_invrender
 

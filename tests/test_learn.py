@@ -92,6 +92,18 @@ def test_tensorboard_log_of_a_resumed_run_has_each_step_once_with_the_rate_it_us
     assert len(events.Scalars("train/loss")) == 6 + 2
 
 
+def test_a_checkpoint_that_cannot_be_written_is_one_error(tmp_path, scene_dirs, monkeypatch):
+    """torch's zip writer reports a full disk as a RuntimeError ('unexpected pos ...'): it used to
+    end the command in a traceback."""
+    def full_disk(state, path):
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 2624 vs 2518")
+
+    monkeypatch.setattr(learn.torch, "save", full_disk)
+    with pytest.raises(InputError, match=r"cannot write checkpoint .*a.ckpt.pt.*is the disk full"):
+        train_patterns(_config(scene_dirs, steps=2), tmp_path / "a.npz", progress=False)
+    assert sorted(path.name for path in tmp_path.iterdir()) == []  # no temporary file left
+
+
 def test_learning_lowers_training_loss(scene_dirs):
     config = _config(scene_dirs, steps=0, init="tri_random")
     rig = load_rig()

@@ -248,6 +248,8 @@ def run_invrender(config: InvRenderConfig, progress: bool = True) -> dict:
     config.validate()
     if config.out is not None:
         check_out_folder(Path(config.out))
+        if config.json is not None and Path(config.json).resolve().is_relative_to((Path(config.out) / TENSORBOARD_FOLDER).resolve()):
+            raise InputError(f"--json {config.json} lies in --out's {TENSORBOARD_FOLDER} folder, which a run replaces whole; write it elsewhere")
     with torch_threads(config.threads):
         return _run(config, progress)
 

@@ -473,7 +473,10 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
             state = {"config": identity, "logits": logits.detach().clone(), "optimiser": optimiser.state_dict(), "scheduler": scheduler.state_dict(), "step": done, "val_history": val_history, "loss": loss_value,
                      "seconds": earlier_seconds + time.perf_counter() - began}
             with atomic_path(checkpoint, suffix=".pt", sync=True) as tmp:
-                torch.save(state, tmp)
+                try:
+                    torch.save(state, tmp)
+                except RuntimeError as err:  # torch's zip writer reports a failed write (a full disk) so
+                    raise InputError(f"cannot write checkpoint {checkpoint}: {err} (is the disk full?)") from None
     if val_scenes and not val_history:  # no step ran (steps = 0): validate the start patterns
         val_history.append((start_step, _validate(logits, val_scenes, eval_settings, writer, start_step)))
     if writer is not None:

@@ -91,6 +91,7 @@ def run_simulate(config: SimulateConfig) -> dict:
     out = Path(config.out)
     names = [f"capture_{index:03d}.png" for index in range(len(pattern_values))]
     # Every output is checked before any is written: a bad one must not leave a half-replaced run.
+    _refuse_foreign_captures(out)
     refuse_overwriting([("output", out / name) for name in ("captures.npy", "meta.json", "contact_sheet.png", *names)],
                        [("scene file", config.scene), ("pattern file", config.patterns), ("rig file", rig_file(config.rig))])
     setting = parse_exposure(str(config.exposure), rig)
@@ -145,10 +146,24 @@ def run_simulate(config: SimulateConfig) -> dict:
     return meta
 
 
+def _refuse_foreign_captures(out: Path) -> None:
+    """Refuse a folder holding ``capture_NNN.png`` files but neither a meta.json nor a
+    captures.npy of a simulate run: they are someone's own images, which this run would overwrite
+    or remove. (A run interrupted while its files moved in removed meta.json first, and leaves
+    captures.npy: ``_previous_captures``.)"""
+    if (out / "meta.json").exists() or (out / "captures.npy").exists() or not out.is_dir():
+        return
+    found = sorted(path.name for path in out.glob("capture_*.png") if re.fullmatch(r"capture_\d{3,}\.png", path.name))
+    if found:
+        raise InputError(f"{out} holds {len(found)} capture_NNN.png file(s) ({', '.join(found[:3])}{', ...' if len(found) > 3 else ''}) "
+                         "but no meta.json of a simulate run: choose another folder, or remove them")
+
+
 def _previous_captures(out: Path) -> list[str]:
     """Capture PNGs of an earlier ``simulate`` into ``out``: those its meta.json lists, or, when
     it has none (a run interrupted while its files moved in removes it first), every
-    ``capture_NNN.png`` there, which only simulate writes into its output folder."""
+    ``capture_NNN.png`` there beside its captures.npy (a folder with neither is refused before
+    the work: ``_refuse_foreign_captures``)."""
     try:
         files = json.loads((out / "meta.json").read_text()).get("files", [])
     except (OSError, ValueError, AttributeError):
