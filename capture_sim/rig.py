@@ -391,6 +391,8 @@ def rig_from_dict(config: dict, default_name: str = "rig") -> Rig:
             exposure_ms=config["camera"].get("exposure_ms"),
         )
         display = config["display"]
+        if "light_positions" in display and "panel" in display:  # one would be ignored without a word
+            raise InputError(f"rig {default_name}: [display] gives both light_positions and a [display.panel] table; keep one")
         if "light_positions" in display:
             positions = _numbers("display light_positions", display["light_positions"])
         else:

@@ -6,6 +6,7 @@ every command fails with one clear message on a bad file.
 from __future__ import annotations
 
 import dataclasses
+import os
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -247,6 +248,8 @@ def scene_paths(paths) -> list[Path]:
             found.extend(files)
         elif entry.is_file():
             found.append(entry)
+        elif os.path.lexists(entry):  # a device, FIFO or broken link: there, but not a scene file
+            raise InputError(f"scene path {entry} is not a file or folder")
         else:
             raise InputError(f"scene path not found: {entry}")
     return found

@@ -90,7 +90,7 @@ def load_patterns(path: str | Path) -> tuple[np.ndarray, dict]:
 def names_pattern_file(text) -> bool:
     """Whether a setting such as ``TrainConfig.init`` names a pattern file (.npz or .npy) rather
     than 'auto' or a family."""
-    return isinstance(text, str) and Path(text).suffix in (".npz", ".npy")
+    return isinstance(text, str) and Path(text).suffix.lower() in (".npz", ".npy")  # as check_pattern_output accepts them
 
 
 def check_patterns_match_rig(patterns, rows: int, cols: int, rig_name: str | None = None) -> None:

@@ -126,6 +126,12 @@ def test_config_errors(scenes):
         tiny_config(scenes, pattern_counts=[], rerender_counts=[])
     with pytest.raises(InputError, match="rerender_counts M = 2 have no normal-only learning run"):
         tiny_config(scenes, learned_counts=[], rerender_counts=[2])
+    with pytest.raises(InputError, match="learned: steps"):  # a wrong type even where nothing is learned
+        tiny_config(scenes, learned={"steps": "5"}, learned_counts=[])
+    with pytest.raises(InputError, match="external pattern names tri_complementary are also heuristic families"):
+        tiny_config(scenes, external=[{"name": "tri_complementary", "path": "patterns/data/ddps/optimized_tri_random_2.npy"}])
+    with pytest.raises(InputError, match="M and num_patterns are the same setting"):
+        tiny_config(scenes, search=[{"family": "tri_complementary", "M": 2, "num_patterns": 4, "algorithm": "LN_SBPLX"}])
 
 
 def test_an_output_folder_holding_the_source_package_is_refused(scenes, tmp_path):
@@ -998,3 +1004,20 @@ def test_search_trace_links_resolve_from_the_report(tmp_path, monkeypatch):
                   "info": {"evaluations": 3, "start_mae": 10.0, "best_mae": 9.5, "stop_reason": "maxeval reached", "trace_png": recorded}}
         text = "\n".join(_search_section({"methods": [method], "default_noise": 1.0}, out_dir))
         assert "[trace](patterns/s.trace.png)" in text, recorded
+
+
+def test_missing_compare_configs_and_odd_scene_paths_are_named_plainly(tmp_path):
+    """A missing config path is not reported as PATH.toml; a bad preset name lists the presets; a
+    scene path that exists but is no file or folder is not 'not found'."""
+    from capture_sim.scene import scene_paths
+
+    with pytest.raises(InputError, match=r"compare config not found: .*missing$"):
+        load_compare_config(tmp_path / "missing")
+    with pytest.raises(InputError, match=r"no compare config demoo \(a TOML file, or a preset: default, demo\)"):
+        load_compare_config("demoo")
+    assert Path(load_compare_config("demo").out).name == "demo"
+    os.mkfifo(tmp_path / "fifo")
+    with pytest.raises(InputError, match="is not a file or folder"):
+        scene_paths([tmp_path / "fifo"])
+    with pytest.raises(InputError, match="scene path not found"):
+        scene_paths([tmp_path / "gone.npz"])

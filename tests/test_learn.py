@@ -166,6 +166,8 @@ def test_capped_angular_loss_ignores_only_pixels_beyond_the_cap():
     with pytest.raises(InputError, match="angle_cap_deg"):
         TrainConfig(angle_cap_deg=0.0)
     TrainConfig(loss="angular", angle_cap_deg=0.0)  # unused by the other losses
+    with pytest.raises(InputError, match="angle_cap_deg"):
+        TrainConfig(loss="angular", angle_cap_deg=math.nan)  # but refused there too, not at the first step
     # A learning rate whose Adam step would overflow float32 (a traceback inside torch) is refused.
     for rate in (1e39, math.inf, math.nan, 0.0):
         with pytest.raises(InputError, match="learning_rate must be a number in"):

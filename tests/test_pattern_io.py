@@ -220,3 +220,10 @@ def test_meta_of_a_large_random_set_stays_small(tmp_path):
     assert load_patterns(tmp_path / "note.npz")[1] == {"note": "réglé", "weights": [0.1] * 1000}
     np.savez(tmp_path / "old.npz", patterns=loaded, meta=np.array(json.dumps({"family": "tri_random"})))
     assert load_patterns(tmp_path / "old.npz")[1] == {"family": "tri_random"}
+
+
+def test_a_pattern_file_named_in_capitals_is_one_to_start_from():
+    """check_pattern_output accepts x.NPZ, so x.NPZ must also read as a pattern file (--init)."""
+    from patterns.io import names_pattern_file
+
+    assert names_pattern_file("learned.NPZ") and names_pattern_file("p.Npy") and not names_pattern_file("tri_gradient")

@@ -139,6 +139,15 @@ def test_rig_and_noise_model_number_types():
             dataclasses.replace(rig, bit_depth=bad)
 
 
+def test_rig_file_with_both_light_positions_and_a_panel_is_refused(tmp_path):
+    from capture_sim.rig import RIG_DIR
+
+    text = (RIG_DIR / "panel-32in-5x10.toml").read_text().replace("[display.panel]", "light_positions = [[[0.0, 0.0, 0.0]]]\n\n[display.panel]")
+    (tmp_path / "both.toml").write_text(text)
+    with pytest.raises(InputError, match="both light_positions and a \\[display.panel\\] table"):
+        load_rig(tmp_path / "both.toml")
+
+
 def test_light_transport_of_a_stack_that_requires_grad_warns_nothing():
     import warnings
 

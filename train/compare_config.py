@@ -210,16 +210,19 @@ class CompareConfig:
             raise InputError("two [[search]] runs have the same family, M and algorithm")
         if len({item.name for item in self.external}) != len(self.external):
             raise InputError("external pattern names must be unique")
+        clashing = sorted({item.name for item in self.external} & set(self.heuristics))
+        if clashing:  # the report's rows and legends would carry one label twice
+            raise InputError(f"external pattern names {', '.join(clashing)} are also heuristic families of this comparison; rename them")
         # Every learning and search config is built now, so a bad value fails before any work; a
         # misspelt [learned] key fails even where nothing is learned (its values are checked merged
         # with each M's table, where they are used).
         unknown = sorted(set(self.learned) - {item.name for item in dataclasses.fields(TrainConfig)})
         if unknown:
             raise InputError(f"learned: unknown key(s) {', '.join(unknown)}")
-        learned_counts = self.learned_pattern_counts() or self.rerender_counts
-        if learned_counts:
-            # [learned] alone too: a value that every [learned_at.M] table overrides is still wrong.
-            self._train_config(self.learned, learned_counts[0], self.seeds_for(learned_counts[0])[0], False, source="learned")
+        # [learned] alone too: a value that every [learned_at.M] table overrides is still wrong, and
+        # one of a config that learns nothing (checked at the first compared M) as well.
+        count = (self.learned_pattern_counts() or self.rerender_counts or self.pattern_counts)[0]
+        self._train_config(self.learned, count, self.seeds_for(count)[0], False, source="learned")
         for count in self.learned_pattern_counts():
             self.train_config(count, self.seeds_for(count)[0])
         for count in self.rerender_counts:
@@ -290,6 +293,8 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
         runs = []
         for table in values.get("search", ()):
             table = dict(table)
+            if "M" in table and "num_patterns" in table:
+                raise InputError(f"{source} [[search]]: M and num_patterns are the same setting; give one")
             if "M" in table:
                 table["num_patterns"] = table.pop("M")
             runs.append(config_from_dict(SearchRun, table, source=f"{source} [[search]]"))
@@ -335,8 +340,14 @@ def load_compare_config(path: str | Path, overrides: dict | None = None) -> Comp
     folder, or to the file's own folder when it is not inside one (``train.config_io.repository_root``).
     """
     path = Path(path)
-    if path.suffix != ".toml" and not path.exists():
-        path = CONFIG_DIR / "compare" / f"{path}.toml"
+    if path.suffix.lower() != ".toml" and not path.exists():
+        if len(path.parts) > 1:  # a path, not a preset name: say it is missing, not that NAME.toml is
+            raise InputError(f"compare config not found: {path}")
+        preset = CONFIG_DIR / "compare" / f"{path}.toml"
+        if not preset.is_file():
+            names = sorted(item.stem for item in (CONFIG_DIR / "compare").glob("*.toml"))
+            raise InputError(f"no compare config {path} (a TOML file, or a preset: {', '.join(names)})")
+        path = preset
     values = dict(load_toml(path))
     values.update({key: value for key, value in (overrides or {}).items() if value is not None})
     return compare_config_from_dict(values, repository_root(path), source=str(path))

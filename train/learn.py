@@ -135,7 +135,8 @@ class TrainConfig:
             raise InputError(f"solver must be one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if self.loss not in LOSSES:
             raise InputError(f"loss must be one of {', '.join(LOSSES)}, got {self.loss!r}")
-        if self.loss == "capped_angular" and not self.angle_cap_deg > 0:
+        # A NaN cap whatever the loss: normal_loss refuses it at the first step, after the scenes are read.
+        if (self.loss == "capped_angular" and not self.angle_cap_deg > 0) or math.isnan(self.angle_cap_deg):
             raise InputError(f"angle_cap_deg must be > 0 (inf for no cap), got {self.angle_cap_deg!r}")
         # Adam's step (learning rate over its bias correction) must stay a float32 number.
         if not 0 < self.learning_rate <= MAX_LEARNING_RATE:
