@@ -98,6 +98,9 @@ def test_bad_inputs_give_one_line_and_status_2(tmp_path, scene_file, capsys):
         # A folder where a file goes; a non-finite weight.
         ["patterns", "make", "--family", "olat", "--M", "2", "--out", str(tmp_path)],
         ["train", "--rerender-weight", "nan", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "m.npz")],
+        # A pattern file written among the scenes it learns from (later read as a scene).
+        ["train", "--steps", "1", "--scenes", str(scene_file.parent), "--out", str(scene_file.parent / "n.npz")],
+        ["search", "--maxeval", "1", "--scenes", str(scene_file.parent), "--out", str(scene_file.parent / "n.npz")],
     ]
     if Path("/proc/self").is_dir():  # a folder where no file can be created: refused before the timing
         cases.append(["bench", "sim", "--repeats", "1", "--json", "/proc/bench.json"])

@@ -274,6 +274,7 @@ def _train(args) -> None:
     }
     config = load_config(TrainConfig, args.config, overrides, flags=_flag_names(overrides, num_patterns="--M"))
     _check_default_rig(config.rig, args.rig, [config.init if names_pattern_file(config.init) else None], [*config.scenes, *config.val_scenes])
+    _refuse_out_among_scenes(args.out, config.scenes, config.val_scenes)
     refuse_overwriting(output_files(args.out), [("--init file", config.init), ("--config file", args.config),
                                                 *_scene_files(config.scenes, config.val_scenes)])
     result = train_patterns(config, args.out, logdir=args.logdir, checkpoint_mode="fresh" if args.fresh else "resume")
@@ -293,6 +294,17 @@ def _check_default_rig(rig: str, flag: str | None, pattern_files, scenes) -> Non
     a rig other than the default has chosen, as --rig does."""
     rig_for_inputs(None if flag is None and rig == DEFAULT_RIG else rig, pattern_files, scenes,
                    "neither --rig nor the config's `rig` named another")
+
+
+def _refuse_out_among_scenes(out: Path, *groups) -> None:
+    """Refuse a pattern file written into a folder given as scenes: every later command reading
+    that folder would take it for a scene (and refuse it)."""
+    folder = Path(out).resolve().parent
+    for paths in groups:
+        for entry in paths or ():
+            if Path(entry).is_dir() and Path(entry).resolve() == folder:
+                raise InputError(f"--out {out} lies in the scene folder {entry}, where later commands would read it as a scene; "
+                                 "write it elsewhere")
 
 
 def _scene_files(*groups):
@@ -353,6 +365,7 @@ def _search(args) -> None:
     }
     config = load_config(SearchConfig, args.config, overrides, flags=_flag_names(overrides, num_patterns="--M"))
     _check_default_rig(config.rig, args.rig, [], config.scenes)
+    _refuse_out_among_scenes(args.out, config.scenes)
     refuse_overwriting(output_files(args.out), [("--config file", args.config), *_scene_files(config.scenes)])
     summary = run_search(config, args.out, logdir=args.logdir)
     print(f"{summary['family']} M={summary['num_patterns']} {summary['algorithm']}: MAE {summary['start_mae']:.2f} "
