@@ -93,11 +93,12 @@ def names_pattern_file(text) -> bool:
     return isinstance(text, str) and Path(text).suffix.lower() in (".npz", ".npy")  # as check_pattern_output accepts them
 
 
-def check_patterns_match_rig(patterns, rows: int, cols: int, rig_name: str | None = None) -> None:
+def check_patterns_match_rig(patterns, rows: int, cols: int, rig_name: str | None = None, source: str | Path | None = None) -> None:
     """Raise ``InputError`` unless ``patterns`` (M, R, C, 3) is on the rig's ``rows`` x ``cols``
-    grid; ``rig_name`` names the rig in the message."""
+    grid; ``rig_name`` names the rig in the message, ``source`` (e.g. the pattern file) the patterns."""
     shape = tuple(np.shape(patterns))
     if len(shape) != 4 or shape[1:3] != (rows, cols):
         rig = "the rig" if rig_name is None else f"rig {rig_name}"
         hint = "; patterns made for another rig need that rig" if len(shape) == 4 else ""
-        raise InputError(f"patterns have shape {shape} but {rig}'s display grid is {rows} x {cols} (expected (M, {rows}, {cols}, 3)){hint}")
+        what = "patterns" if source is None else f"patterns of {source}"
+        raise InputError(f"{what} have shape {shape} but {rig}'s display grid is {rows} x {cols} (expected (M, {rows}, {cols}, 3)){hint}")

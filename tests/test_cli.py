@@ -884,6 +884,8 @@ def test_inputs_made_for_another_rig_need_rig(tmp_path, scene_file, capsys):
     # A grid mismatch names the rig and says what to do.
     assert run(["export", "--patterns", str(patterns), "--rig", "panel-32in-5x10", "--out", str(tmp_path / "frames2")]) == 2
     assert "rig panel-32in-5x10's display grid is 5 x 10" in capsys.readouterr().err
+    assert run(["evaluate", "--patterns", str(patterns), "--rig", "panel-32in-5x10", "--scenes", str(scene)]) == 2
+    assert f"patterns of {patterns} have shape" in capsys.readouterr().err  # the file is named
 
 
 def test_own_scene_files_from_the_user_scenario(tmp_path, scene_file, capsys, monkeypatch):

@@ -57,7 +57,7 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
         patterns = "olat"
     else:
         values, _ = load_patterns(config.patterns)
-        check_patterns_match_rig(values, rig.rows, rig.cols, rig.name)
+        check_patterns_match_rig(values, rig.rows, rig.cols, rig.name, config.patterns)
         patterns = torch.as_tensor(values)
     settings = EvalSettings(method=config.method, noise_scale=0.0 if config.noise == "off" else 1.0, exposure=parse_exposure(str(config.exposure), rig), seed=config.seed)
     scenes = resolve_scenes(config.scenes, "test", rig)

@@ -165,7 +165,7 @@ def _prepare_data(config: InvRenderConfig, scene, rig, pixels, split) -> _Data:
             description = {"patterns": "olat", "M": int(split.fit.numel()), "pattern_meta": {}}
         else:
             values, pattern_meta = load_patterns(config.patterns)
-            check_patterns_match_rig(values, rig.rows, rig.cols, rig.name)
+            check_patterns_match_rig(values, rig.rows, rig.cols, rig.name, config.patterns)
             pattern_set = torch.as_tensor(values, dtype=torch.float32)
             setting = parse_exposure(str(config.exposure), rig)
             exposure = resolve_exposure(setting, pattern_set, scene, rig)

@@ -175,7 +175,7 @@ def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
     if not names_pattern_file(config.init):
         raise InputError(f"--init must be a family ({', '.join(FAMILIES)}) or a pattern file, got {config.init!r}")
     values, _ = load_patterns(path)
-    check_patterns_match_rig(values, rows, cols, config.rig)
+    check_patterns_match_rig(values, rows, cols, config.rig, path)
     if values.shape[0] != config.num_patterns:
         raise InputError(f"{path} holds {values.shape[0]} patterns but M = {config.num_patterns} (learn M = {values.shape[0]} patterns to start from it)")
     return torch.as_tensor(values)

@@ -84,7 +84,7 @@ def run_simulate(config: SimulateConfig) -> dict:
     rig = rig_for_scene(load_rig(config.rig), scene)
     warn_if_black_inside_mask(scene)
     pattern_values, pattern_meta = load_patterns(config.patterns)
-    check_patterns_match_rig(pattern_values, rig.rows, rig.cols, rig.name)
+    check_patterns_match_rig(pattern_values, rig.rows, rig.cols, rig.name, config.patterns)
     if config.noise not in ("off", "default"):
         raise InputError(f"--noise must be 'off' or 'default', got {config.noise!r}")
     patterns = torch.as_tensor(pattern_values, dtype=torch.float32)
