@@ -104,6 +104,19 @@ def test_a_checkpoint_that_cannot_be_written_is_one_error(tmp_path, scene_dirs, 
     assert sorted(path.name for path in tmp_path.iterdir()) == []  # no temporary file left
 
 
+def test_tensorboard_logs_both_terms_of_a_loss_with_re_rendering(tmp_path, scene_dirs):
+    """With rerender_weight > 0 the summed loss and its two terms are logged: loss = normal + w rerender."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    config = _config(scene_dirs, steps=2, val_every=0, rerender_weight=0.5)
+    train_patterns(config, tmp_path / "r.npz", progress=False, logdir=tmp_path / "tb")
+    events = EventAccumulator(str(tmp_path / "tb"))
+    events.Reload()
+    total, normal, rendered = ([event.value for event in events.Scalars(f"train/{name}")] for name in ("loss", "normal_loss", "rerender_loss"))
+    assert len(total) == len(normal) == len(rendered) == 2
+    assert np.allclose(total, np.asarray(normal) + 0.5 * np.asarray(rendered), rtol=1e-5)
+
+
 def test_learning_lowers_training_loss(scene_dirs):
     config = _config(scene_dirs, steps=0, init="tri_random")
     rig = load_rig()

@@ -220,9 +220,12 @@ def training_samplers(scenes: list[ScenePixels], config: TrainConfig) -> list[Sh
     return samplers
 
 
-def training_loss(logits: torch.Tensor, scenes: list[ShuffledPixels], config: TrainConfig, step: int, ps_config: UnrolledPSConfig) -> torch.Tensor:
+def training_loss(logits: torch.Tensor, scenes: list[ShuffledPixels], config: TrainConfig, step: int, ps_config: UnrolledPSConfig,
+                  parts: dict | None = None) -> torch.Tensor:
     """Loss of one step: a random window of every scene's shuffled pixels, simulated, reconstructed,
-    compared; every scene weighs the same."""
+    compared; every scene weighs the same. With the re-rendering loss, ``parts`` (a dict, if
+    given) receives the scene means of its two terms as floats: ``normal`` and ``rerender``
+    (unweighted)."""
     generator = step_generator(config.seed, step)
     patterns = logits_to_patterns(logits)
     draws = []
@@ -230,13 +233,17 @@ def training_loss(logits: torch.Tensor, scenes: list[ShuffledPixels], config: Tr
         part = sampler.draw(generator)
         exposure = scene_exposure(sampler.every_pixel(EXPOSURE_PIXELS), patterns)
         draws.append((sampler, part, capture_scene(sampler.scene, patterns, config.noise_scale, exposure, generator, part)))
-    losses = []
+    losses, terms = [], []
     for (sampler, part, capture), (normal, albedo) in zip(draws, reconstruct_draws(draws, config.solver, ps_config)):
         pixels = sampler.scene
         loss = normal_loss(normal, pixels.normal[part], config.loss, config.angle_cap_deg)
         if config.rerender_weight > 0:
-            loss = loss + config.rerender_weight * rerender_loss(normal, albedo, capture, pixels, part)
+            rendered = rerender_loss(normal, albedo, capture, pixels, part)
+            terms.append((float(loss.detach()), float(rendered.detach())))
+            loss = loss + config.rerender_weight * rendered
         losses.append(loss)
+    if parts is not None and terms:
+        parts.update(normal=float(np.mean([t[0] for t in terms])), rerender=float(np.mean([t[1] for t in terms])))
     return torch.stack(losses).mean()
 
 
@@ -452,7 +459,10 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
     bar = tqdm(range(start_step, config.steps), initial=start_step, total=config.steps, desc=f"learning M={config.num_patterns}", disable=not progress, unit="step")
     for step in bar:
         optimiser.zero_grad()
-        loss = training_loss(logits, train_scenes, config, step, ps_config)
+        parts: dict = {}
+        # The two terms of a loss with re-rendering go to TensorBoard besides their weighted sum.
+        loss = training_loss(logits, train_scenes, config, step, ps_config,
+                             **({"parts": parts} if writer is not None and config.rerender_weight > 0 else {}))
         loss.backward()
         if not (torch.isfinite(loss.detach()) and torch.isfinite(logits.grad).all()):
             # Stop before the step writes NaN into the patterns (and a checkpoint).
@@ -467,6 +477,8 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
         if writer is not None:
             writer.add_scalar("train/loss", loss_value, done)
             writer.add_scalar("train/learning_rate", rate, done)
+            for name, value in parts.items():
+                writer.add_scalar(f"train/{name}_loss", value, done)
         if val_scenes and ((config.val_every and done % config.val_every == 0) or done == config.steps):
             val_history.append((done, _validate(logits, val_scenes, eval_settings, writer, done)))
         bar.set_postfix(loss=f"{loss_value:.4f}", **({"val_mae": f"{val_history[-1][1]:.2f}"} if val_history else {}))
