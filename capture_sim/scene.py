@@ -248,7 +248,9 @@ def scene_paths(paths) -> list[Path]:
             found.extend(files)
         elif entry.is_file():
             found.append(entry)
-        elif os.path.lexists(entry):  # a device, FIFO or broken link: there, but not a scene file
+        elif entry.is_symlink() and not entry.exists():
+            raise InputError(f"scene path {entry} is a link to {os.readlink(entry)}, which is not found")
+        elif os.path.lexists(entry):  # a device or FIFO: there, but not a scene file
             raise InputError(f"scene path {entry} is not a file or folder")
         else:
             raise InputError(f"scene path not found: {entry}")

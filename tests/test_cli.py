@@ -102,6 +102,9 @@ def test_bad_inputs_give_one_line_and_status_2(tmp_path, scene_file, capsys):
         ["train", "--steps", "1", "--scenes", str(scene_file.parent), "--out", str(scene_file.parent / "n.npz")],
         ["search", "--maxeval", "1", "--scenes", str(scene_file.parent), "--out", str(scene_file.parent / "n.npz")],
     ]
+    from train.cli import _refuse_out_among_scenes
+
+    _refuse_out_among_scenes(scene_file.parent / "n.NPZ", [str(scene_file.parent)])  # not read as a scene (*.npz is case-sensitive)
     if Path("/proc/self").is_dir():  # a folder where no file can be created: refused before the timing
         cases.append(["bench", "sim", "--repeats", "1", "--json", "/proc/bench.json"])
     for argv in cases:

@@ -288,24 +288,26 @@ def test_a_run_that_cannot_start_stops_the_comparison_before_learning(scenes, tm
         collect_methods(config, load_rig(), tmp_path / "patterns", progress=False)
 
 
-def test_a_search_run_again_logs_into_an_emptied_folder_of_its_own(scenes, tmp_path):
-    """A search that runs again (its earlier run interrupted, or its output deleted) replaces its
-    TensorBoard folder: the evaluations of the earlier run would overlap the new ones."""
+def test_a_run_again_hides_its_earlier_run_in_its_own_log_folder(scenes, tmp_path):
+    """A search or a fresh learning run that runs again (its earlier run interrupted, or its output
+    deleted as a stale-run refusal says) hides that run's TensorBoard events in its own folder: they
+    would overlap the new ones."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    from train.compare_methods import searched_method
+    from train.compare_methods import learned_method, searched_method
 
-    config = tiny_config(scenes, learned_counts=[], search=[{"family": "tri_complementary", "M": 2, "algorithm": "LN_SBPLX", "maxeval": 3,
-                                                             "pixels_per_scene": 32}])
+    config = tiny_config(scenes, learned={"steps": 3, "val_every": 0, "pixels_per_scene": 32},
+                         search=[{"family": "tri_complementary", "M": 2, "algorithm": "LN_SBPLX", "maxeval": 3, "pixels_per_scene": 32}])
     run, logdir, patterns = config.search[0], tmp_path / "tensorboard", tmp_path / "patterns"
     for _ in range(2):
         shutil.rmtree(patterns, ignore_errors=True)
         patterns.mkdir()
         searched_method(config, run, patterns, progress=False, logdir=logdir)
-    events = EventAccumulator(str(logdir / run.name))
-    events.Reload()
-    assert [event.step for event in events.Scalars("search/mae_deg")] == [0, 1, 2]
-    assert len(list((logdir / run.name).glob("events*"))) == 1
+        learned_method(config, 2, 0, patterns, progress=False, logdir=logdir)
+    for folder, tag, steps in ((run.name, "search/mae_deg", [0, 1, 2]), ("learned_M2_seed0", "train/loss", [1, 2, 3])):
+        events = EventAccumulator(str(logdir / folder))
+        events.Reload()
+        assert [event.step for event in events.Scalars(tag)] == steps, folder
 
 
 def test_unreadable_external_file_stops_the_comparison_before_learning(scenes, tmp_path, monkeypatch):
@@ -1006,6 +1008,19 @@ def test_search_trace_links_resolve_from_the_report(tmp_path, monkeypatch):
         assert "[trace](patterns/s.trace.png)" in text, recorded
 
 
+def test_a_stale_run_names_the_comparison_settings_that_differ(scenes, monkeypatch):
+    """The run's own field names (val_scenes, noise_scale) are not the ones the user edited."""
+    import train.compare_methods as compare_methods
+    from train.config_io import config_to_dict
+
+    config = tiny_config(scenes)
+    run = config.train_config(2, 0)
+    recorded = dict(config_to_dict(run), val_scenes=["elsewhere"], noise_scale=4.0, steps=99)
+    monkeypatch.setattr(compare_methods, "load_patterns", lambda path: (None, {"config": recorded}))
+    reason = compare_methods._stale_reason(Path("x.npz"), run)
+    assert reason == "made with another config (settings that differ: default_noise, steps, test_scenes (the learning runs' validation))"
+
+
 def test_missing_compare_configs_and_odd_scene_paths_are_named_plainly(tmp_path):
     """A missing config path is not reported as PATH.toml; a bad preset name lists the presets; a
     scene path that exists but is no file or folder is not 'not found'."""
@@ -1016,6 +1031,18 @@ def test_missing_compare_configs_and_odd_scene_paths_are_named_plainly(tmp_path)
     with pytest.raises(InputError, match=r"no compare config demoo \(a TOML file, or a preset: default, demo\)"):
         load_compare_config("demoo")
     assert Path(load_compare_config("demo").out).name == "demo"
+    with pytest.raises(InputError, match=r"compare config not found: \./mine$"):
+        load_compare_config("./mine")
+    (tmp_path / "demo").mkdir()  # e.g. the demo's output folder, where the command runs
+    cwd = os.getcwd()
+    try:
+        os.chdir(tmp_path)
+        assert Path(load_compare_config("demo").out).name == "demo"  # still the preset
+    finally:
+        os.chdir(cwd)
+    os.symlink(tmp_path / "gone.npz", tmp_path / "link.npz")
+    with pytest.raises(InputError, match="is a link to .*gone.npz, which is not found"):
+        scene_paths([tmp_path / "link.npz"])
     os.mkfifo(tmp_path / "fifo")
     with pytest.raises(InputError, match="is not a file or folder"):
         scene_paths([tmp_path / "fifo"])

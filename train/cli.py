@@ -299,6 +299,8 @@ def _check_default_rig(rig: str, flag: str | None, pattern_files, scenes) -> Non
 def _refuse_out_among_scenes(out: Path, *groups) -> None:
     """Refuse a pattern file written into a folder given as scenes: every later command reading
     that folder would take it for a scene (and refuse it)."""
+    if Path(out).suffix != ".npz":  # scene folders are read with a case-sensitive *.npz
+        return
     folder = Path(out).resolve().parent
     for paths in groups:
         for entry in paths or ():

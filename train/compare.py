@@ -344,7 +344,8 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     Returns:
         The results dict written to ``results.json``: resolved ``config``, ``rig``, ``exposure_ms``,
         ``white_exposures`` (e_white per test scene, ``white_exposures``), ``white_exposures_olat``
-        (the same in the OLAT reference's units), scene names, ``methods`` (each with ``evaluations`` per noise level), ``skipped``,
+        (the same in the OLAT reference's units), scene names, ``test_files_also_trained`` (test
+        scene files that learning or searches also used), ``methods`` (each with ``evaluations`` per noise level), ``skipped``,
         ``summary`` (learned vs best heuristic, seed spread) and ``timings``.
     """
     from train.report import CHARTS, summary_tables, write_report

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -339,15 +340,19 @@ def load_compare_config(path: str | Path, overrides: dict | None = None) -> Comp
     Relative paths inside the file are relative to the folder that holds the file's ``configs/``
     folder, or to the file's own folder when it is not inside one (``train.config_io.repository_root``).
     """
+    text = str(path)
     path = Path(path)
-    if path.suffix.lower() != ".toml" and not path.exists():
-        if len(path.parts) > 1:  # a path, not a preset name: say it is missing, not that NAME.toml is
-            raise InputError(f"compare config not found: {path}")
-        preset = CONFIG_DIR / "compare" / f"{path}.toml"
+    # A bare name (no folder, no .toml) is a preset unless a file of that name stands here: a folder
+    # named like a preset (e.g. the demo's output) must not hide it.
+    bare = not any(separator in text for separator in ("/", os.sep)) and path.suffix.lower() != ".toml"
+    if bare and not path.is_file():
+        preset = CONFIG_DIR / "compare" / f"{text}.toml"
         if not preset.is_file():
             names = sorted(item.stem for item in (CONFIG_DIR / "compare").glob("*.toml"))
-            raise InputError(f"no compare config {path} (a TOML file, or a preset: {', '.join(names)})")
+            raise InputError(f"no compare config {text} (a TOML file, or a preset: {', '.join(names)})")
         path = preset
+    elif not path.exists():
+        raise InputError(f"compare config not found: {text}")
     values = dict(load_toml(path))
     values.update({key: value for key, value in (overrides or {}).items() if value is not None})
     return compare_config_from_dict(values, repository_root(path), source=str(path))

@@ -4,7 +4,6 @@ pattern files and the OLAT reference."""
 from __future__ import annotations
 
 import json
-import shutil
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -81,6 +80,12 @@ def _reusable(path: Path, run_config, what: str) -> dict | None:
     return {"meta": meta, "patterns": patterns}
 
 
+_COMPARE_NAMES = {"scenes": "train_scenes", "val_scenes": "test_scenes (the learning runs' validation)",
+                  "noise_scale": "default_noise", "num_patterns": "M"}
+"""The comparison's names of the run settings it sets itself (TrainConfig / SearchConfig fields);
+the others come from its [learned], [learned_at.M] or [[search]] tables under their own names."""
+
+
 def _stale_reason(path: Path, run_config) -> str | None:
     """Why the existing output ``path`` cannot stand for a run of ``run_config``, or None."""
     _, meta = load_patterns(path)
@@ -88,7 +93,7 @@ def _stale_reason(path: Path, run_config) -> str | None:
     if recorded_config != wanted:
         # A learning run's val_scenes are the test scenes, its scenes the training scenes: a
         # changed scene list shows there.
-        changed = changed_keys(recorded_config, wanted)
+        changed = [_COMPARE_NAMES.get(key, key) for key in changed_keys(recorded_config, wanted)]
         return "made with another config" + (f" (settings that differ: {', '.join(changed)})" if changed else "")
     # Records of earlier versions held the scene files only: such a run cannot show it was made
     # from the current rig and init files, so it is not reused.
@@ -154,7 +159,7 @@ def learned_method(config: CompareConfig, num_patterns: int, seed: int, pattern_
     if existing is None:
         _record_path(path).unlink(missing_ok=True)  # an earlier run's record must not vouch for this run's file
         result = train_patterns(train_config, path, logdir=None if logdir is None else logdir / method_id, progress=progress,
-                                checkpoint_mode="resume_or_fresh")
+                                checkpoint_mode="resume_or_fresh", own_logdir=True)
         seconds = result.seconds  # includes the sessions of a resumed run
         write_json(_record_path(path), {"seconds": seconds, "steps": train_config.steps, "input_files": input_fingerprints(train_config)})
         patterns, val_history = result.patterns, result.val_history
@@ -176,9 +181,7 @@ def searched_method(config: CompareConfig, run: SearchRun, pattern_dir: Path, pr
     existing = _reusable(path, search_config, "searched patterns")
     if existing is None:
         _record_path(path).unlink(missing_ok=True)
-        if logdir is not None:  # the comparison's own folder for this run: an interrupted run's evaluations go
-            shutil.rmtree(logdir / run.name, ignore_errors=True)
-        meta = run_search(search_config, path, logdir=None if logdir is None else logdir / run.name, progress=progress)
+        meta = run_search(search_config, path, logdir=None if logdir is None else logdir / run.name, progress=progress, own_logdir=True)
         patterns = load_patterns(path)[0]
         write_json(_record_path(path), {"seconds": meta["seconds"], "input_files": input_fingerprints(search_config)})
     else:

@@ -403,7 +403,7 @@ CHECKPOINT_MODES = ("resume", "fresh", "resume_or_fresh")
 
 
 def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, progress: bool = True,
-                   checkpoint_mode: str = "resume") -> TrainResult:
+                   checkpoint_mode: str = "resume", own_logdir: bool = False) -> TrainResult:
     """Learn patterns, write them to ``out`` (.npz) with the resolved config beside them.
 
     The run checkpoints to ``<out stem>.ckpt.pt``. ``checkpoint_mode`` says what to do with an
@@ -411,15 +411,18 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
     (``InputError``: the user decides); 'fresh' deletes it first; 'resume_or_fresh' resumes a
     matching one and replaces any other (for callers that own the output folder, e.g. compare,
     where a checkpoint of another config is left over from an interrupted run of an older config).
+    A resumed run hides the TensorBoard events of the steps it redoes; with ``own_logdir`` (the
+    folder holds this output's runs alone, e.g. compare's), a fresh run hides every earlier event
+    there, which other runs sharing a folder must keep.
     """
     if checkpoint_mode not in CHECKPOINT_MODES:
         raise InputError(f"checkpoint_mode must be one of {', '.join(CHECKPOINT_MODES)}, got {checkpoint_mode!r}")
     # A second run on the same output would share its checkpoint and silently replace its result.
     with exclusive_output(out, "training run"):
-        return _train(config, Path(out), logdir, progress, checkpoint_mode)
+        return _train(config, Path(out), logdir, progress, checkpoint_mode, own_logdir)
 
 
-def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, checkpoint_mode: str) -> TrainResult:
+def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, checkpoint_mode: str, own_logdir: bool) -> TrainResult:
     began = time.perf_counter()
     check_logdir(logdir)  # before the scenes, which can take a while
     rig = load_rig(config.rig)
@@ -451,9 +454,9 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
         start_step, val_history = state["step"], state["val_history"]
         loss_value = state.get("loss", float("nan"))
         earlier_seconds = state.get("seconds", 0.0)
-    # A resumed run hides the steps it redoes (logged from 1); a fresh one hides nothing: other
-    # runs may share the folder.
-    writer = summary_writer(logdir, start_step + 1 if start_step else None)
+    # A resumed run hides the steps it redoes (logged from 1); a fresh one hides nothing unless the
+    # folder is its own: other runs may share it.
+    writer = summary_writer(logdir, start_step + 1 if start_step or own_logdir else None)
     ps_config = UnrolledPSConfig()
     eval_settings = EvalSettings(noise_scale=config.noise_scale, seed=config.seed + 7919)
     bar = tqdm(range(start_step, config.steps), initial=start_step, total=config.steps, desc=f"learning M={config.num_patterns}", disable=not progress, unit="step")

@@ -212,8 +212,8 @@ def _caption(fig, text: str) -> None:
 
 
 _HEURISTIC_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:cyan", "tab:olive", "tab:pink", "tab:gray", "gold", "teal")
-# Hollow and unlike the other kinds' filled o, P, D, s and *: nine families at one M sit on top of
-# each other in the cost charts, where colour alone did not tell them apart.
+# Hollow, unlike the other kinds' filled markers: nine families at one M sit on top of each other in
+# the cost charts, where colour alone did not tell them apart.
 _HEURISTIC_MARKERS = ("v", "^", "<", ">", "p", "d", "h", "1", "2")
 _OTHER_COLOURS = {"search": ("tab:purple", "darkviolet", "mediumorchid", "indigo"), "external": ("tab:brown", "peru", "saddlebrown", "rosybrown")}
 # After every colour of its kind, a series takes the next marker (search: D first, external: s).
@@ -230,9 +230,10 @@ def _peers(rows: list[dict]) -> dict[str, list[str]]:
 
 
 def _style(kind: str, series: str = "", peers: dict | None = None) -> dict:
-    """Line style of a method: fixed per kind; colour (and, for heuristic families, marker) fixed
-    per series. Searches and external sets take their kind's colours in the order of their names
-    among ``peers`` (``_peers``), then markers: two never look alike in one chart."""
+    """Line style of a method: fixed per kind; colour and marker fixed per series. Heuristic
+    families go by their place in ``FAMILIES``; searches and external sets take their kind's
+    colours in the order of their names among ``peers`` (``_peers``), then further markers: two
+    never look alike in one chart."""
     style = dict(_KIND_STYLE.get(kind, {}))
     if kind == "heuristic":
         order = list(FAMILIES)

@@ -559,7 +559,7 @@ def _search_meta(config: SearchConfig, rig, names: list[str], start, found, scen
     }
 
 
-def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, progress: bool = True) -> dict:
+def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, progress: bool = True, own_logdir: bool = False) -> dict:
     """Search a family's parameters with NLopt and write the best patterns.
 
     Writes ``out`` (pattern .npz, patterns exactly as evaluated, meta with the family, algorithm,
@@ -576,13 +576,16 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
         out: output pattern file (.npz).
         logdir: TensorBoard folder, or None.
         progress: show a tqdm bar over evaluations.
+        own_logdir: ``logdir`` holds this output's runs alone (e.g. compare's): an earlier,
+            interrupted search's events there are hidden (a search starts over). Other runs
+            sharing a folder keep theirs.
 
     Returns:
         The pattern file's meta dict plus ``pattern_file``, ``trace_csv`` and ``trace_png`` paths.
     """
     # A second search on the same output would share its partial trace and replace its result.
     with exclusive_output(out, "search"):
-        return _search(config, Path(out), logdir, progress)
+        return _search(config, Path(out), logdir, progress, own_logdir)
 
 
 def check_search_setup(config: SearchConfig, rig) -> np.ndarray:
@@ -598,7 +601,7 @@ def check_search_setup(config: SearchConfig, rig) -> np.ndarray:
     return start
 
 
-def _search(config: SearchConfig, out: Path, logdir: Path | None, progress: bool) -> dict:
+def _search(config: SearchConfig, out: Path, logdir: Path | None, progress: bool, own_logdir: bool) -> dict:
     from train.figures import save_figure
 
     check_logdir(logdir)  # before the scenes, which can take a while
@@ -615,7 +618,7 @@ def _search(config: SearchConfig, out: Path, logdir: Path | None, progress: bool
     # Every input is checked: now a partial trace left by an earlier interrupted run goes, as it
     # would pass for this run's if this one were interrupted before its first flush.
     _remove_file(partial)
-    writer = summary_writer(logdir)
+    writer = summary_writer(logdir, 0 if own_logdir else None)
     bar = tqdm(total=config.maxeval, desc=f"search {config.family} M={config.num_patterns} {config.algorithm}", unit="eval", disable=not progress)
     seen: list = []
 

@@ -149,8 +149,10 @@ def run_simulate(config: SimulateConfig) -> dict:
 def _refuse_foreign_captures(out: Path) -> None:
     """Refuse a folder holding ``capture_NNN.png`` files but neither a meta.json nor a
     captures.npy of a simulate run: they are someone's own images, which this run would overwrite
-    or remove. (A run interrupted while its files moved in removed meta.json first, and leaves
-    captures.npy: ``_previous_captures``.)"""
+    or remove. (A run killed while its files moved in has removed its meta.json; once its
+    captures.npy moved in, ``_previous_captures`` takes the PNGs as its own. A first run killed
+    before that, by SIGKILL or power loss (Ctrl-C waits for the moves), leaves PNGs alone, which
+    this refuses: the message says to remove them.)"""
     if (out / "meta.json").exists() or (out / "captures.npy").exists() or not out.is_dir():
         return
     found = sorted(path.name for path in out.glob("capture_*.png") if re.fullmatch(r"capture_\d{3,}\.png", path.name))
