@@ -482,7 +482,10 @@ def _number(name: str, value, expected: str = "a number") -> float:
 def _numbers(name: str, value) -> np.ndarray:
     """A number or nested list of numbers as a float64 array (TOML strings and booleans refused:
     numpy would convert "1.5" and true silently)."""
-    array = np.asarray(value)
+    try:
+        array = np.asarray(value)
+    except ValueError:  # a ragged nested list: numpy's message names no setting
+        raise InputError(f"{name} must be a list of equal-length lists of numbers, got {one_line(repr(value))[:80]}") from None
     if array.dtype.kind not in "iuf":
         raise InputError(f"{name} must be numbers, got {one_line(repr(value))[:80]}")
     return array.astype(np.float64)

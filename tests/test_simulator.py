@@ -146,6 +146,10 @@ def test_rig_file_with_both_light_positions_and_a_panel_is_refused(tmp_path):
     (tmp_path / "both.toml").write_text(text)
     with pytest.raises(InputError, match="both light_positions and a \\[display.panel\\] table"):
         load_rig(tmp_path / "both.toml")
+    ragged = (RIG_DIR / "panel-32in-5x10.toml").read_text().replace("backlight = 0.03", "backlight = [[0.1, 0.2], [0.3]]")
+    (tmp_path / "ragged.toml").write_text(ragged)
+    with pytest.raises(InputError, match="display backlight must be a list of equal-length lists of numbers"):
+        load_rig(tmp_path / "ragged.toml")
 
 
 def test_light_transport_of_a_stack_that_requires_grad_warns_nothing():
