@@ -303,7 +303,12 @@ def available_rigs() -> list[str]:
 def load_rig(name_or_path: str | Path = DEFAULT_RIG) -> Rig:
     """Load a rig from a preset name (``configs/rigs/NAME.toml``) or a TOML file path."""
     path = rig_source(name_or_path)
-    return rig_from_dict(load_toml(path), default_name=path.stem)
+    try:
+        return rig_from_dict(load_toml(path), default_name=path.stem)
+    except InputError as err:  # messages name the rig by its `name`, which a copied file keeps
+        if str(path) in str(err) or path.name in str(err):
+            raise
+        raise InputError(f"{err} (rig file {path})") from None
 
 
 def rig_source(name_or_path: str | Path) -> Path:

@@ -150,6 +150,10 @@ def test_rig_file_with_both_light_positions_and_a_panel_is_refused(tmp_path):
     (tmp_path / "ragged.toml").write_text(ragged)
     with pytest.raises(InputError, match="display backlight must be a list of equal-length lists of numbers"):
         load_rig(tmp_path / "ragged.toml")
+    # A copied file keeps the preset's `name`: the message names the file too.
+    (tmp_path / "gamma0.toml").write_text((RIG_DIR / "panel-32in-5x10.toml").read_text().replace("gamma = 2.2", "gamma = 0.0"))
+    with pytest.raises(InputError, match=r"rig panel-32in-5x10: display gamma .* \(rig file .*gamma0.toml\)$"):
+        load_rig(tmp_path / "gamma0.toml")
 
 
 def test_light_transport_of_a_stack_that_requires_grad_warns_nothing():
