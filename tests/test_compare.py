@@ -351,6 +351,7 @@ def test_summary_tables_against_plain_computation():
     assert pivot_cell(dict(rows["a"], invalid_fraction=0.9999), "mae", 2) == "20.00 (99.99% invalid)"  # nearly all: the placeholder
     assert pivot_cell(dict(rows["a"], invalid_fraction=0.98), "mae", 2) == "20.00"
     assert pivot_cell(dict(rows["a"], invalid_fraction=0.99996), "mae", 2) == "20.00 (99.99% invalid)"  # not rounded up to 100%
+    assert pivot_cell(dict(rows["a"], invalid_fraction=0.9998999983), "mae", 2) == "20.00 (99.99% invalid)"  # 9999 of 10000, in floats
     summary = summary_tables(results)
     by_noise = {c["noise_scale"]: c for c in summary["learned_vs_heuristic"]}
     assert by_noise[0.5]["best_heuristic"] == "a" and by_noise[0.5]["ratio"] == pytest.approx(8.5 / 10.0)
@@ -864,6 +865,23 @@ def test_external_and_searched_sets_never_share_a_style_in_one_chart():
     assert len(styles) == len(names) and len(set(styles.values())) == len(names), styles
 
 
+def test_report_names_externals_the_reference_flags_and_the_training_noise():
+    from train.report import _noise_section, _reference_flags, externals_section
+
+    results = fake_results()
+    results["methods"].append({"id": "ext", "kind": "external", "series": "external:pub", "label": "pub", "M": 2, "pattern_file": "p/pub.npy",
+                               "seed": None, "cost_seconds": None, "evaluations": results["methods"][0]["evaluations"]})
+    assert "- pub (M = 2): p/pub.npy" in externals_section(results)
+    assert externals_section(dict(results, methods=results["methods"][:3])) == []
+    reference = {"id": "ref", "kind": "reference", "series": "reference", "label": "OLAT", "M": 144, "seed": None, "cost_seconds": None,
+                 "evaluations": [dict(results["methods"][0]["evaluations"][0], flagged={"poor_fit": 0.404, "saturated": 0.076, "dark": 0.0})]}
+    results["methods"].append(reference)
+    assert _reference_flags(reference, results) == " (a poor fit on 40% of the pixels, saturated captures on 7.6% of the pixels)"
+    text = _noise_section(results, aggregate_rows(results, 0.5))[2]
+    assert "learning and searches used noise scale 0.5 only" in text
+    assert "used noise scale" not in _noise_section(dict(results, methods=results["methods"][:3]), aggregate_rows(results, 0.5))[2]
+
+
 def test_summary_states_the_answer_first_against_plain_computation():
     """Per M, the most accurate method and the learned / best-heuristic ratio with the test scenes
     the learned patterns win (mean over seeds per scene); the evidence behind them."""
@@ -878,9 +896,14 @@ def test_summary_states_the_answer_first_against_plain_computation():
     results["test_scenes"] = ["scene0", "scene1"]
     summary = summary_tables(results)
     text = "\n".join(summary_section(results, summary))
-    assert "- M = 2: most accurate: learned patterns, MAE 8.50 deg" in text  # (8 + 9) / 2 at noise 0.5 beats search 9.5 and a 10
+    assert "- M = 2: lowest mean error: learned patterns, MAE 8.50 deg" in text  # (8 + 9) / 2 at noise 0.5 beats search 9.5 and a 10
     assert "; best heuristic family a 10.00 deg; learned / heuristic 0.850, learned better on 1 of 2 test scenes" in text
     assert "2 test scenes" in text and "from 2 learning seeds at every M" in text and "placeholder normal" in text
+    assert "lowest median" not in text  # learned has the lowest median too (4.25 against the search's 4.75)
+    heuristic_a = next(m for m in results["methods"] if m["id"] == "aNone")
+    heuristic_a["evaluations"][0].update(median=3.0, invalid_fraction=0.02)
+    text = "\n".join(summary_section(results, summary_tables(results)))
+    assert "; lowest median: a, 3.00 deg against 4.25 (invalid pixels 2.0% against 0.0%" in text
     comparisons = {c["noise_scale"]: c for c in summary["learned_vs_heuristic"]}
     assert comparisons[0.5]["best_tuned"] == "s"
     no_search = fake_results()
@@ -893,7 +916,7 @@ def test_summary_states_the_answer_first_against_plain_computation():
             for evaluation in method["evaluations"]:
                 evaluation.update(invalid_fraction=1.0, mae=1.0)
     text = "\n".join(summary_section(results, summary_tables(results)))
-    assert "the learned patterns leave every pixel invalid" in text and "better on" not in text and "most accurate: learned" not in text
+    assert "the learned patterns leave every pixel invalid" in text and "better on" not in text and "lowest mean error: learned" not in text
     # ... and no re-rendering ratio against them (the placeholder MAE is no baseline).
     learned_seed0 = next(m for m in results["methods"] if m["id"] == "learned0")
     results["methods"].append(dict(learned_seed0, id="rr", kind="rerender", series="learned_rerender", info={"rerender_weight": 0.5},
@@ -973,7 +996,7 @@ def test_report_reader_fixes():
             method["specular_free"]["mae"] = 10.05  # against a's 10.0: ratio 1.005
     summary = summary_tables(results)
     text = "\n".join(specular_free_section(dict(results, specular_free={"enabled": True}), summary, summary["rows"]))
-    assert "without specular reflection the two are even" in text and "is better" not in text
+    assert "without it the two are even" in text and "is better" not in text
     results["methods"][0]["evaluations"][0].update(invalid_fraction=1.0)
     rows = aggregate_rows(results, 0.5)
     assert "| a | 2 | 10.00 (all invalid) | 20.00 |" in "\n".join(_noise_section(results, rows))

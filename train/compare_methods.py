@@ -187,6 +187,7 @@ def searched_method(config: CompareConfig, run: SearchRun, pattern_dir: Path, pr
     else:
         meta, patterns = existing["meta"], existing["patterns"]
     info = {key: meta[key] for key in ("start_mae", "best_mae", "evaluations", "stop_reason", "sharpness")}
+    info["parameters"] = len(meta.get("parameter_names", ()))
     info["trace_png"] = str(trace_chart_path(path))
     return Method(run.name, "search", f"search:{run.family}:{run.algorithm}", f"{run.family} + {run.algorithm}", run.num_patterns,
                   patterns, str(path), meta["seconds"], info=info)

@@ -270,7 +270,7 @@ def invalid_note(fraction: float) -> str:
     if fraction >= 1.0:
         return " (all invalid)"
     # Rounded down: 0.99996 is not 100%.
-    return f" ({math.floor(fraction * 1e4) / 100:g}% invalid)" if fraction >= 0.99 else ""
+    return f" ({math.floor(round(fraction * 1e4, 3)) / 100:g}% invalid)" if fraction >= 0.99 else ""  # float32 means: 0.9999 is 0.99989998
 
 
 def all_invalid(row: dict) -> bool:
@@ -573,6 +573,17 @@ def _sizes_text(results: dict) -> str:
     return f" of {' and '.join(sizes)} pixels" if sizes else ""
 
 
+def _reference_flags(reference: dict, results: dict) -> str:
+    """' (poor fit on 40% of the pixels, saturated on 7.6%)' from the reference's evaluation at
+    the default noise (results of older versions carry no flags: '')."""
+    method = next((m for m in results["methods"] if m["kind"] == "reference"), None)
+    evaluation = None if method is None else _evaluation(method, results["default_noise"])
+    flagged = (evaluation or {}).get("flagged") or {}
+    parts = [f"{what} on {100 * flagged[name]:.2g}% of the pixels" for name, what in (("poor_fit", "a poor fit"), ("saturated", "saturated captures"))
+             if flagged.get(name, 0) > 0]
+    return f" ({', '.join(parts)})" if parts else ""
+
+
 def _held_out_text(results: dict) -> str:
     """'4 held-out test scenes', or '4 test scenes (2 of them also used for learning or searches,
     so not held out: a.npz, b.npz)' where the config listed test scene files among the training
@@ -600,6 +611,18 @@ def _measurement_caption(results: dict) -> str:
         f"or of a search.{_trained_noise_text(results)} {_learning_text(results)}"
         f"{_preset_text(results)}"
     )
+
+
+def externals_section(results: dict) -> list[str]:
+    """The external pattern sets, one line each: name, M and file (relative to the output where
+    inside it)."""
+    externals = [method for method in results["methods"] if method["kind"] == "external"]
+    if not externals:
+        return []
+    lines = ["## External pattern sets", "", "Pattern files the config lists ([[external]]), evaluated as given: sets learned or designed "
+             "elsewhere, under another simulator, reconstructor or scenes, are not tuned to this comparison's.", ""]
+    lines += [f"- {method['label']} (M = {method['M']}): {method.get('pattern_file') or '-'}" for method in externals]
+    return lines + [""]
 
 
 def _main_cause(flag_shares: dict[str, float]) -> str:
@@ -739,9 +762,9 @@ def specular_free_section(results: dict, summary: dict, rows: list[dict]) -> lis
         head += f"{full['ratio']:.3f} on the scenes ({full['best_heuristic']}), " if full else ""
         line = head + f"{c['ratio']:.3f} without specular reflection ({c['best_heuristic']}, {c['best_heuristic_mae']:.2f} deg)"
         if full and full["ratio"] < 1 - TIE_MARGIN and c["ratio"] >= 1 + TIE_MARGIN:
-            line += "; the learned advantage is on the glossy pixels: without specular reflection the best heuristic is better"
+            line += "; the learned advantage comes with specular reflection (learning saw glossy scenes): without it the best heuristic is better"
         elif full and full["ratio"] < 1 - TIE_MARGIN and c["ratio"] > 1 - TIE_MARGIN:
-            line += "; the learned advantage is on the glossy pixels: without specular reflection the two are even"
+            line += "; the learned advantage comes with specular reflection (learning saw glossy scenes): without it the two are even"
         lines.append(line + ".")
     return lines + [""]
 
@@ -783,6 +806,7 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict, into: Path) -
     lines += summary_section(results, summary)
     lines += ["## How it was measured", "", _measurement_caption(results), ""]
     lines += families_section(results)
+    lines += externals_section(results)
     lines += _accuracy_section(results, rows)
     lines += _noise_section(results, rows)
     lines += _advantage_section(summary, results["pattern_counts"])
@@ -864,7 +888,9 @@ def _accuracy_section(results: dict, rows: list[dict]) -> list[str]:
     if reference is not None:
         lines += [f"Reference: {reference['label']}: MAE {reference['mae']:.2f} deg, median {reference['median']:.2f} deg, "
                   f"invalid {100 * reference['invalid_fraction']:.1f}% of the pixels, capture {reference['capture_seconds']:.1f} s, "
-                  f"compute {_seconds(reference['reconstruct_seconds'])} s per scene.", ""]
+                  f"compute {_seconds(reference['reconstruct_seconds'])} s per scene. It is no upper bound: Woodham least squares "
+                  "fits every image, shadowed and specular ones included, with one Lambertian model" + _reference_flags(reference, results)
+                  + ".", ""]
     lines += ["Median angular error (deg):", "", pivot("median", 2), "",
               "Capture time (s: M x exposure time, scaled by each method's exposure gain as stated above):", "", pivot("capture_seconds", 2), "",
               "Compute time (s per scene: the reconstruction, as stated above):", "", pivot("reconstruct_seconds", None), ""]
@@ -881,7 +907,9 @@ def _accuracy_section(results: dict, rows: list[dict]) -> list[str]:
 
 def _noise_section(results: dict, rows: list[dict]) -> list[str]:
     """MAE of every method at every noise scale."""
-    lines = ["## MAE against noise level", "", "Mean angular error (deg) at each noise scale (x the rig's noise variances):", ""]
+    trained = _trained_noise_text(results).strip().rstrip(".")
+    note = f"; {trained[0].lower() + trained[1:]} only, so at the other levels their patterns meet a noise they were not made for" if trained else ""
+    lines = ["## MAE against noise level", "", f"Mean angular error (deg) at each noise scale (x the rig's noise variances{note}):", ""]
     noises = results["noise_scales"]
     per_noise = {noise: {(row["series"], row["M"]): row for row in aggregate_rows(results, noise)} for noise in noises}
     body = []
@@ -889,6 +917,14 @@ def _noise_section(results: dict, rows: list[dict]) -> list[str]:
         key = (row["series"], row["M"])
         body.append([row["label"], str(row["M"])] + [pivot_cell(per_noise[n][key], "mae", 2) if key in per_noise[n] else "-" for n in noises])
     return lines + [_table(["method", "M"] + [f"noise {n:g}" for n in noises], body), ""]
+
+
+def _lowest_median(rows: list[dict], count: int) -> dict | None:
+    """The row with the lowest median error at M = ``count`` among the compared methods (learned,
+    heuristic, searched, external), all-invalid rows left out; None without one."""
+    candidates = [row for row in rows if row["M"] == count and row["kind"] in ("learned", "rerender", "heuristic", "search", "external")
+                  and not all_invalid(row) and math.isfinite(row["median"])]
+    return min(candidates, key=lambda row: row["median"]) if candidates else None
 
 
 def summary_section(results: dict, summary: dict) -> list[str]:
@@ -907,7 +943,13 @@ def summary_section(results: dict, summary: dict) -> list[str]:
             continue
         winner = best[count]
         name = "learned patterns" if winner["kind"] == "learned" else winner["label"]
-        text = f"- M = {count}: most accurate: {name}, MAE {winner['mae']:.2f} deg (capture {winner['capture_seconds']:.2f} s)"
+        text = f"- M = {count}: lowest mean error: {name}, MAE {winner['mae']:.2f} deg (capture {winner['capture_seconds']:.2f} s)"
+        by_median = _lowest_median(rows, count)
+        if by_median is not None and by_median["series"] != winner["series"]:
+            median_name = "learned patterns" if by_median["kind"] == "learned" else by_median["label"]
+            text += (f"; lowest median: {median_name}, {by_median['median']:.2f} deg against {winner['median']:.2f} "
+                     f"(invalid pixels {100 * by_median['invalid_fraction']:.1f}% against {100 * winner['invalid_fraction']:.1f}%: "
+                     "the mean counts them at the placeholder normal, the median hardly)")
         if count in learned_rows and all_invalid(learned_rows[count]):
             text += "; the learned patterns leave every pixel invalid"
         elif count in comparisons:
@@ -928,8 +970,9 @@ def summary_section(results: dict, summary: dict) -> list[str]:
             per_m = "learning seeds " + ", ".join(f"{seeds[count]} at M = {count}" for count in sorted(seeds))
         learning = f", learned patterns from {per_m}" + ("" if max(counts) > 1 else " (no seed spread measured)")
     lines += ["", f"Evidence: {len(results['test_scenes'])} test scenes, one noise draw per scene and method (the same draws for "
-              f"every method){learning}. A pixel the solver flags invalid counts in the MAE with the placeholder normal "
-              "(0, 0, -1), facing the camera; the invalid share is in the tables below.", ""]
+              f"every method){learning}. A pixel the solver flags invalid (too dark, too few or too similar captures, or a fit that "
+              "faces away from the camera) counts in the MAE with the placeholder normal (0, 0, -1), facing the camera; the invalid "
+              "share is in the tables below. Ratios are learned / other MAE: below 1, learned is better.", ""]
     return lines
 
 
@@ -1071,6 +1114,6 @@ def _search_section(results: dict, out_dir: Path) -> list[str]:
                 trace = trace.resolve().relative_to(out_dir.resolve())
             except ValueError:
                 pass
-        body.append([method["label"], str(method["M"]), str(info["evaluations"]), _fmt(info["start_mae"]), _fmt(info["best_mae"]),
+        body.append([method["label"], str(method["M"]), str(info.get("parameters", "-")), str(info["evaluations"]), _fmt(info["start_mae"]), _fmt(info["best_mae"]),
                      _fmt(test["mae"]) if test else "-", _fmt(method["cost_seconds"], 0), info["stop_reason"], f"[trace]({trace.as_posix()})"])
-    return lines + [_table(["search", "M", "evaluations", "start (train)", "best (train)", "test MAE", "cost (s)", "stop", "chart"], body), ""]
+    return lines + [_table(["search", "M", "parameters P", "evaluations", "start (train)", "best (train)", "test MAE", "cost (s)", "stop", "chart"], body), ""]
