@@ -38,7 +38,7 @@ import numpy as np
 from PIL import Image
 
 from capture_sim.array_files import read_arrays
-from capture_sim.errors import InputError, check_array
+from capture_sim.errors import InputError, check_array, warn_once
 from capture_sim.png import decode_png, png_format
 from capture_sim.rig import Rig
 from capture_sim.scene import MAX_DEPTH_M, Scene
@@ -79,6 +79,10 @@ def detect_dir_layout(folder: str | Path) -> str:
         f"{folder}: not a DIR object folder: expected main/diffuseNspecular/ (DIR-basic) or "
         "filenames.txt (DIR-pms, DiLiGenT style)"
     )
+
+
+UNIT_TOLERANCE = 1e-2
+"""Largest |length - 1| of a stored ground-truth normal (as ``validate_scene`` allows)."""
 
 
 def load_dir_object(folder: str | Path, rig: Rig, downsample: int = 1) -> Scene:
@@ -156,6 +160,11 @@ def load_dir_object(folder: str | Path, rig: Rig, downsample: int = 1) -> Scene:
     if normal_full is not None:
         length = np.linalg.norm(np.nan_to_num(normal_full), axis=-1)
         normal_ok = np.isfinite(normal_full).all(-1) & (length > 1e-6)
+        stored = length[valid & normal_ok]
+        if stored.size and float(np.abs(stored - 1.0).max()) > UNIT_TOLERANCE:
+            # A colour-encoded map ((n + 1) / 2, or 0..255) renormalised would be tens of degrees off.
+            raise InputError(f"{folder}: ground-truth normals inside the mask are not unit vectors (lengths {float(stored.min()):.3g} to "
+                             f"{float(stored.max()):.3g}); decode a colour-encoded normal map (e.g. n = 2 c - 1) before loading")
         valid &= normal_ok
         unit = np.nan_to_num(normal_full) / np.maximum(length, 1e-12)[..., None]
         normal_full = np.where(normal_ok[..., None], unit, 0.0)
@@ -166,6 +175,14 @@ def load_dir_object(folder: str | Path, rig: Rig, downsample: int = 1) -> Scene:
         depth_full = np.where(depth_ok, depth_full, 0.0)
         depth_full = _to_metres(depth_full, valid, notes)
     notes["mask_dropped_pixels"] = int(mask_full.sum() - valid.sum())
+    if mask_full.any() and not valid.any():
+        raise InputError(f"{folder}: none of the {int(mask_full.sum())} pixels of mask.png has usable ground truth "
+                         "(finite non-zero normals, positive depth)")
+    if depth_full is not None:
+        median = float(np.median(depth_full[valid]))
+        if not rig.working_distance / 4 <= median <= rig.working_distance * 4:
+            warn_once(f"{folder}: the object's median depth is {median:.3g} m after unit conversion ({notes['depth_units']}), "
+                      f"far from rig {rig.name}'s working distance {rig.working_distance:g} m: are the depths in another unit?")
 
     mask = _block_all(valid, downsample)
     normal = depth = None
@@ -188,10 +205,14 @@ def load_dir_object(folder: str | Path, rig: Rig, downsample: int = 1) -> Scene:
         **notes,
         "units": {"olat": "linear, 1 = sensor full scale", "depth": "m", "light_positions": "m, OpenCV camera frame"},
     }
+    # Block means put a low-resolution pixel's centre at the mean of its f x f pixels' centres:
+    # (c + 0.5) / f - 0.5, where scaling the intrinsics alone gives c / f.
+    camera = rig.with_resolution(out_h, out_w).camera.matrix()
+    camera[:2, 2] -= (downsample - 1) / (2 * downsample)
     return Scene(
         olat=olat,
         mask=mask,
-        K_cam=rig.with_resolution(out_h, out_w).camera.matrix(),
+        K_cam=camera,
         light_positions=rig.light_positions.astype(np.float32),
         normal=normal,
         depth=depth,
@@ -290,7 +311,7 @@ def _check_camera(rig: Rig, height: int, width: int, folder: Path) -> None:
     scale_y, scale_x = height / rig.camera.height, width / rig.camera.width
     if abs(scale_x - scale_y) > 0.01 * max(scale_x, scale_y):
         raise InputError(
-            f"{folder}: images are {height} x {width} but rig {rig.name}'s camera is "
+            f"{folder}: mask.png (the size every image must have) is {height} x {width} but rig {rig.name}'s camera is "
             f"{rig.camera.height} x {rig.camera.width}; the intrinsics cannot be scaled to a different aspect ratio"
         )
 

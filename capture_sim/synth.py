@@ -15,6 +15,8 @@ Pixels outside the mask have zero OLAT, zero normal and zero depth.
 """
 from __future__ import annotations
 
+import numbers
+
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +26,7 @@ import torch
 from tqdm import tqdm
 
 from capture_sim.atomic import check_replaceable, staged_files, write_json
-from capture_sim.errors import MAX_SEED, DisplexWarning, InputError, check_seed, is_whole_number
+from capture_sim.errors import MAX_SEED, DisplexWarning, InputError, is_whole_number
 from capture_sim.materials import MATERIALS, make_material
 from capture_sim.render import render_olat
 from capture_sim.rig import Rig
@@ -219,10 +221,10 @@ def default_scene_specs(seed: int = 0) -> dict[str, list[SceneSpec]]:
     Returns:
         ``{"train": [...], "test": [...]}`` of ``SceneSpec``.
     """
-    check_seed("seed", seed)
     largest = (MAX_SEED - (len(_DEFAULT_TRAIN) + len(_DEFAULT_TEST) - 1)) // 100
-    if seed > largest:  # the scenes' own seeds must stay valid seeds
-        raise InputError(f"scene set seed must be at most {largest} (scene i gets seed 100 * seed + i <= {MAX_SEED}), got {seed}")
+    # One message with the bound that holds (the scenes' own seeds must stay valid seeds).
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not 0 <= seed <= largest:
+        raise InputError(f"scene set seed must be a whole number in [0, {largest}] (scene i gets seed 100 * seed + i <= {MAX_SEED}), got {seed!r}")
     specs: dict[str, list[SceneSpec]] = {}
     index = 0
     for split, pairs in (("train", _DEFAULT_TRAIN), ("test", _DEFAULT_TEST)):

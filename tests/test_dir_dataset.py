@@ -13,7 +13,7 @@ from scipy.io import savemat
 from capture_sim.dir_dataset import (
     detect_dir_layout, dir_file_to_light, dir_object_folders, load_dir_dataset, load_dir_object,
 )
-from capture_sim.errors import InputError
+from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.png import write_png
 from capture_sim.rig import load_rig
 
@@ -172,7 +172,10 @@ def test_downsampling_averages_blocks(basic_folder, rig):
     # A block touching the masked-out first row / column leaves the mask.
     assert not half.mask[0, :].any() and not half.mask[:, 0].any() and half.mask[1:, 1:].all()
     assert np.allclose(np.linalg.norm(half.normal[half.mask], axis=-1), 1.0, atol=1e-6)
-    assert np.allclose(half.K_cam, small_rig.with_resolution(HEIGHT // 2, WIDTH // 2).camera.matrix())
+    # A block of 2 x 2 pixels is centred half a full-resolution pixel beyond its first: c' = (c + 0.5) / 2 - 0.5.
+    expected = small_rig.with_resolution(HEIGHT // 2, WIDTH // 2).camera.matrix()
+    expected[:2, 2] = (small_rig.camera.matrix()[:2, 2] + 0.5) / 2 - 0.5
+    assert np.allclose(half.K_cam, expected)
     with pytest.raises(InputError, match="divisible"):
         load_dir_object(basic_folder, rig, downsample=4)
 
@@ -188,6 +191,17 @@ def test_missing_ground_truth_pixels_leave_the_mask(tmp_path, rig):
     assert np.allclose(scene.depth[scene.mask], 0.5)
     assert "millimetres" in scene.meta["depth_units"]
     assert np.isfinite(scene.normal).all()
+
+
+def test_ground_truth_that_cannot_be_right_is_refused_or_warned(tmp_path, rig):
+    """A colour-encoded normal map was renormalised into normals ~36 deg off; ground truth missing at
+    every mask pixel was reported as an empty mask; depths in centimetres became 5 cm away."""
+    with pytest.raises(InputError, match="not unit vectors .* decode a colour-encoded normal map"):
+        load_dir_object(_make_basic(tmp_path / "colour", normals=(_opencv_normals() + 1) / 2), rig)
+    with pytest.raises(InputError, match="none of the .* pixels of mask.png has usable ground truth"):
+        load_dir_object(_make_basic(tmp_path / "zeros", normals=np.zeros((HEIGHT, WIDTH, 3))), rig)
+    with pytest.warns(DisplexWarning, match="median depth is 0.05 m .* another unit"):
+        load_dir_object(_make_basic(tmp_path / "cm", depth=np.full((HEIGHT, WIDTH), 50.0)), rig)
 
 
 def test_missing_files_raise_clear_errors(tmp_path, rig):
@@ -257,7 +271,7 @@ def test_sixteen_bit_colour_pngs_keep_their_low_bytes(tmp_path, rig):
 
 
 def test_camera_aspect_mismatch_raises(basic_folder):
-    with pytest.raises(InputError, match="aspect ratio"):
+    with pytest.raises(InputError, match="mask.png .* is 6 x 8 .* aspect ratio"):
         load_dir_object(basic_folder, load_rig())  # 512 x 612 camera, 6 x 8 images
 
 

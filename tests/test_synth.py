@@ -315,7 +315,7 @@ def test_default_specs_split_disjoint_and_cover_material_kinds():
         default_scene_specs(seed=-2)
     largest = (2**32 - 1 - 9) // 100  # every scene seed 100 * seed + i must be a valid seed
     assert default_scene_specs(seed=largest)["test"][-1].seed == 100 * largest + 9
-    with pytest.raises(InputError, match=f"scene set seed must be at most {largest}"):
+    with pytest.raises(InputError, match=rf"scene set seed must be a whole number in \[0, {largest}\]"):
         default_scene_specs(seed=largest + 1)
 
 
