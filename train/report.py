@@ -889,7 +889,8 @@ def _accuracy_section(results: dict, rows: list[dict]) -> list[str]:
         lines += [f"Reference: {reference['label']}: MAE {reference['mae']:.2f} deg, median {reference['median']:.2f} deg, "
                   f"invalid {100 * reference['invalid_fraction']:.1f}% of the pixels, capture {reference['capture_seconds']:.1f} s, "
                   f"compute {_seconds(reference['reconstruct_seconds'])} s per scene. It is no upper bound: Woodham least squares "
-                  "fits every image, shadowed and specular ones included, with one Lambertian model" + _reference_flags(reference, results)
+                  "fits one Lambertian model to every lit image, specular highlights included (it drops only dark, shadowed and "
+                  "saturated captures)" + _reference_flags(reference, results)
                   + ".", ""]
     lines += ["Median angular error (deg):", "", pivot("median", 2), "",
               "Capture time (s: M x exposure time, scaled by each method's exposure gain as stated above):", "", pivot("capture_seconds", 2), "",
