@@ -104,6 +104,10 @@ class Scene:
         return points_from_depth(depth, self.K_cam).to(dtype)
 
 
+UNIT_TOLERANCE = 1e-2
+"""Largest |length - 1| of a ground-truth normal inside a scene's mask."""
+
+
 def validate_scene(scene: Scene) -> None:
     """Raise ``InputError`` with one readable line if the scene breaks DESIGN section 7."""
     name = scene.label
@@ -159,7 +163,7 @@ def validate_scene(scene: Scene) -> None:
     if scene.normal is not None:
         inside = np.asarray(scene.normal, dtype=np.float64)[scene.mask]
         # A component beyond 2 is no unit vector, and 1e300 would overflow the norm.
-        if inside.size and (float(np.abs(inside).max()) > 2 or float(np.abs(np.linalg.norm(inside, axis=-1) - 1).max()) > 1e-2):
+        if inside.size and (float(np.abs(inside).max()) > 2 or float(np.abs(np.linalg.norm(inside, axis=-1) - 1).max()) > UNIT_TOLERANCE):
             raise InputError(f"{name}: normals inside the mask must be unit vectors")
         # Grazing normals may lean slightly past n_z = 0; a majority facing away is a flipped convention.
         if inside.size and float((inside[:, 2] > 0).mean()) > 0.5:

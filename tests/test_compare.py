@@ -352,6 +352,7 @@ def test_summary_tables_against_plain_computation():
     assert pivot_cell(dict(rows["a"], invalid_fraction=0.98), "mae", 2) == "20.00"
     assert pivot_cell(dict(rows["a"], invalid_fraction=0.99996), "mae", 2) == "20.00 (99.99% invalid)"  # not rounded up to 100%
     assert pivot_cell(dict(rows["a"], invalid_fraction=0.9998999983), "mae", 2) == "20.00 (99.99% invalid)"  # 9999 of 10000, in floats
+    assert pivot_cell(dict(rows["a"], invalid_fraction=0.99999996), "mae", 2) == "20.00 (99.99% invalid)"  # never 100%
     summary = summary_tables(results)
     by_noise = {c["noise_scale"]: c for c in summary["learned_vs_heuristic"]}
     assert by_noise[0.5]["best_heuristic"] == "a" and by_noise[0.5]["ratio"] == pytest.approx(8.5 / 10.0)
@@ -876,10 +877,13 @@ def test_report_names_externals_the_reference_flags_and_the_training_noise():
     reference = {"id": "ref", "kind": "reference", "series": "reference", "label": "OLAT", "M": 144, "seed": None, "cost_seconds": None,
                  "evaluations": [dict(results["methods"][0]["evaluations"][0], flagged={"poor_fit": 0.404, "saturated": 0.076, "dark": 0.0})]}
     results["methods"].append(reference)
-    assert _reference_flags(reference, results) == " (a poor fit on 40% of the pixels, saturated captures on 7.6% of the pixels)"
+    assert _reference_flags(results) == " (a poor fit on 40.4% of the pixels)"
+    reference["evaluations"][0]["flagged"]["poor_fit"] = 0.996
+    assert _reference_flags(results) == " (a poor fit on 99.6% of the pixels)"
     text = _noise_section(results, aggregate_rows(results, 0.5))[2]
     assert "learning and searches used noise scale 0.5 only" in text
     assert "used noise scale" not in _noise_section(dict(results, methods=results["methods"][:3]), aggregate_rows(results, 0.5))[2]
+    assert "used noise scale" not in _noise_section(dict(results, noise_scales=[0.5]), aggregate_rows(results, 0.5))[2]  # one level only
 
 
 def test_summary_states_the_answer_first_against_plain_computation():
@@ -904,6 +908,11 @@ def test_summary_states_the_answer_first_against_plain_computation():
     heuristic_a["evaluations"][0].update(median=3.0, invalid_fraction=0.02)
     text = "\n".join(summary_section(results, summary_tables(results)))
     assert "; lowest median: a, 3.00 deg against 4.25 (invalid pixels 2.0% against 0.0%" in text
+    heuristic_a["evaluations"][0].update(invalid_fraction=0.0)  # no more invalid pixels: no such explanation
+    text = "\n".join(summary_section(results, summary_tables(results)))
+    assert "; lowest median: a, 3.00 deg against 4.25;" in text and "(invalid pixels" not in text
+    heuristic_a["evaluations"][0].update(median=4.24)  # within TIE_MARGIN of the winner's 4.25: no clause
+    assert "lowest median" not in "\n".join(summary_section(results, summary_tables(results)))
     comparisons = {c["noise_scale"]: c for c in summary["learned_vs_heuristic"]}
     assert comparisons[0.5]["best_tuned"] == "s"
     no_search = fake_results()

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import struct
+import warnings
 import zlib
 
 import numpy as np
@@ -172,10 +173,7 @@ def test_downsampling_averages_blocks(basic_folder, rig):
     # A block touching the masked-out first row / column leaves the mask.
     assert not half.mask[0, :].any() and not half.mask[:, 0].any() and half.mask[1:, 1:].all()
     assert np.allclose(np.linalg.norm(half.normal[half.mask], axis=-1), 1.0, atol=1e-6)
-    # A block of 2 x 2 pixels is centred half a full-resolution pixel beyond its first: c' = (c + 0.5) / 2 - 0.5.
-    expected = small_rig.with_resolution(HEIGHT // 2, WIDTH // 2).camera.matrix()
-    expected[:2, 2] = (small_rig.camera.matrix()[:2, 2] + 0.5) / 2 - 0.5
-    assert np.allclose(half.K_cam, expected)
+    assert np.allclose(half.K_cam, small_rig.with_resolution(HEIGHT // 2, WIDTH // 2).camera.matrix())
     with pytest.raises(InputError, match="divisible"):
         load_dir_object(basic_folder, rig, downsample=4)
 
@@ -196,11 +194,25 @@ def test_missing_ground_truth_pixels_leave_the_mask(tmp_path, rig):
 def test_ground_truth_that_cannot_be_right_is_refused_or_warned(tmp_path, rig):
     """A colour-encoded normal map was renormalised into normals ~36 deg off; ground truth missing at
     every mask pixel was reported as an empty mask; depths in centimetres became 5 cm away."""
-    with pytest.raises(InputError, match="not unit vectors .* decode a colour-encoded normal map"):
+    with pytest.raises(InputError, match="most ground-truth normals .* not unit vectors .* decode a colour-encoded normal map"):
         load_dir_object(_make_basic(tmp_path / "colour", normals=(_opencv_normals() + 1) / 2), rig)
+    odd = _opencv_normals()
+    odd[3, 3] *= 0.5  # one pixel off (e.g. interpolated at an edge): it leaves the mask, the object loads
+    scene = load_dir_object(_make_basic(tmp_path / "odd", normals=odd), rig)
+    assert not scene.mask[3, 3] and scene.meta["non_unit_normals_dropped"] == 1
+    scattered = _opencv_normals()
+    scattered[1::2, 1::2] = 0.0  # every 2 x 2 block loses a pixel: nothing left at downsample 2
+    with pytest.raises(InputError, match="no 2 x 2 block of mask.png has usable ground truth"):
+        load_dir_object(_make_basic(tmp_path / "scattered", normals=scattered), rig, downsample=2)
+    empty = _make_basic(tmp_path / "empty")
+    _save_png(empty / "mask.png", np.zeros((HEIGHT, WIDTH), dtype=np.uint8))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no NaN median warning before the one error
+        with pytest.raises(InputError, match="mask selects no pixels"):
+            load_dir_object(empty, rig)
     with pytest.raises(InputError, match="none of the .* pixels of mask.png has usable ground truth"):
         load_dir_object(_make_basic(tmp_path / "zeros", normals=np.zeros((HEIGHT, WIDTH, 3))), rig)
-    with pytest.warns(DisplexWarning, match="median depth is 0.05 m .* another unit"):
+    with pytest.warns(DisplexWarning, match=r"median depth is 0.05 m .* outside 0.125..2 m .* another unit"):
         load_dir_object(_make_basic(tmp_path / "cm", depth=np.full((HEIGHT, WIDTH), 50.0)), rig)
 
 

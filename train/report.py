@@ -270,7 +270,8 @@ def invalid_note(fraction: float) -> str:
     if fraction >= 1.0:
         return " (all invalid)"
     # Rounded down: 0.99996 is not 100%.
-    return f" ({math.floor(round(fraction * 1e4, 3)) / 100:g}% invalid)" if fraction >= 0.99 else ""  # float32 means: 0.9999 is 0.99989998
+    # Rounded to float32's precision first (0.9999 is 0.99989998), then down, never up to 100%.
+    return f" ({min(math.floor(round(fraction * 1e4, 3)) / 100, 99.99):g}% invalid)" if fraction >= 0.99 else ""
 
 
 def all_invalid(row: dict) -> bool:
@@ -573,15 +574,13 @@ def _sizes_text(results: dict) -> str:
     return f" of {' and '.join(sizes)} pixels" if sizes else ""
 
 
-def _reference_flags(reference: dict, results: dict) -> str:
-    """' (poor fit on 40% of the pixels, saturated on 7.6%)' from the reference's evaluation at
-    the default noise (results of older versions carry no flags: '')."""
+def _reference_flags(results: dict) -> str:
+    """' (a poor fit on 40% of the pixels)' from the OLAT reference's evaluation at the default
+    noise ('' without one, or for results of older versions, which carry no flags)."""
     method = next((m for m in results["methods"] if m["kind"] == "reference"), None)
     evaluation = None if method is None else _evaluation(method, results["default_noise"])
-    flagged = (evaluation or {}).get("flagged") or {}
-    parts = [f"{what} on {100 * flagged[name]:.2g}% of the pixels" for name, what in (("poor_fit", "a poor fit"), ("saturated", "saturated captures"))
-             if flagged.get(name, 0) > 0]
-    return f" ({', '.join(parts)})" if parts else ""
+    share = ((evaluation or {}).get("flagged") or {}).get("poor_fit", 0.0)
+    return f" (a poor fit on {100 * share:.3g}% of the pixels)" if share > 0 else ""
 
 
 def _held_out_text(results: dict) -> str:
@@ -619,7 +618,8 @@ def externals_section(results: dict) -> list[str]:
     externals = [method for method in results["methods"] if method["kind"] == "external"]
     if not externals:
         return []
-    lines = ["## External pattern sets", "", "Pattern files the config lists ([[external]]), evaluated as given: sets learned or designed "
+    lines = ["## External pattern sets", "", "Pattern files the config lists ([[external]]) that fit the rig and the compared M (others: "
+             "see Skipped), evaluated as given: sets learned or designed "
              "elsewhere, under another simulator, reconstructor or scenes, are not tuned to this comparison's.", ""]
     lines += [f"- {method['label']} (M = {method['M']}): {method.get('pattern_file') or '-'}" for method in externals]
     return lines + [""]
@@ -762,9 +762,9 @@ def specular_free_section(results: dict, summary: dict, rows: list[dict]) -> lis
         head += f"{full['ratio']:.3f} on the scenes ({full['best_heuristic']}), " if full else ""
         line = head + f"{c['ratio']:.3f} without specular reflection ({c['best_heuristic']}, {c['best_heuristic_mae']:.2f} deg)"
         if full and full["ratio"] < 1 - TIE_MARGIN and c["ratio"] >= 1 + TIE_MARGIN:
-            line += "; the learned advantage comes with specular reflection (learning saw glossy scenes): without it the best heuristic is better"
+            line += "; the learned advantage comes with specular reflection: without it the best heuristic is better"
         elif full and full["ratio"] < 1 - TIE_MARGIN and c["ratio"] > 1 - TIE_MARGIN:
-            line += "; the learned advantage comes with specular reflection (learning saw glossy scenes): without it the two are even"
+            line += "; the learned advantage comes with specular reflection: without it the two are even"
         lines.append(line + ".")
     return lines + [""]
 
@@ -890,7 +890,7 @@ def _accuracy_section(results: dict, rows: list[dict]) -> list[str]:
                   f"invalid {100 * reference['invalid_fraction']:.1f}% of the pixels, capture {reference['capture_seconds']:.1f} s, "
                   f"compute {_seconds(reference['reconstruct_seconds'])} s per scene. It is no upper bound: Woodham least squares "
                   "fits one Lambertian model to every lit image, specular highlights included (it drops only dark, shadowed and "
-                  "saturated captures)" + _reference_flags(reference, results)
+                  "saturated captures)" + _reference_flags(results)
                   + ".", ""]
     lines += ["Median angular error (deg):", "", pivot("median", 2), "",
               "Capture time (s: M x exposure time, scaled by each method's exposure gain as stated above):", "", pivot("capture_seconds", 2), "",
@@ -908,7 +908,7 @@ def _accuracy_section(results: dict, rows: list[dict]) -> list[str]:
 
 def _noise_section(results: dict, rows: list[dict]) -> list[str]:
     """MAE of every method at every noise scale."""
-    trained = _trained_noise_text(results).strip().rstrip(".")
+    trained = _trained_noise_text(results).strip().rstrip(".") if len(results["noise_scales"]) > 1 else ""
     note = f"; {trained[0].lower() + trained[1:]} only, so at the other levels their patterns meet a noise they were not made for" if trained else ""
     lines = ["## MAE against noise level", "", f"Mean angular error (deg) at each noise scale (x the rig's noise variances{note}):", ""]
     noises = results["noise_scales"]
@@ -920,16 +920,21 @@ def _noise_section(results: dict, rows: list[dict]) -> list[str]:
     return lines + [_table(["method", "M"] + [f"noise {n:g}" for n in noises], body), ""]
 
 
-def _lowest_median(rows: list[dict], count: int) -> dict | None:
+def _lowest_median(rows: list[dict], count: int, winner: dict) -> dict | None:
     """The row with the lowest median error at M = ``count`` among the compared methods (learned,
-    heuristic, searched, external), all-invalid rows left out; None without one."""
+    re-rendering, heuristic, searched, external; all-invalid rows left out) when its median is
+    below ``winner``'s (the lowest-MAE row) by more than ``TIE_MARGIN``; None otherwise."""
     candidates = [row for row in rows if row["M"] == count and row["kind"] in ("learned", "rerender", "heuristic", "search", "external")
                   and not all_invalid(row) and math.isfinite(row["median"])]
-    return min(candidates, key=lambda row: row["median"]) if candidates else None
+    if not candidates or not math.isfinite(winner["median"]):
+        return None
+    best = min(candidates, key=lambda row: row["median"])
+    return best if best["median"] < (1 - TIE_MARGIN) * winner["median"] else None
 
 
 def summary_section(results: dict, summary: dict) -> list[str]:
-    """The answer first: per M at the default noise, the most accurate method and its capture time,
+    """The answer first: per M at the default noise, the method of lowest MAE and its capture time
+    (and the one of lowest median where that is clearly lower),
     the learned patterns against the best heuristic family with the test scenes each wins, and how
     much of the evidence there is (scenes, learning seeds, noise draws)."""
     rows, default = summary["rows"], results["default_noise"]
@@ -945,12 +950,13 @@ def summary_section(results: dict, summary: dict) -> list[str]:
         winner = best[count]
         name = "learned patterns" if winner["kind"] == "learned" else winner["label"]
         text = f"- M = {count}: lowest mean error: {name}, MAE {winner['mae']:.2f} deg (capture {winner['capture_seconds']:.2f} s)"
-        by_median = _lowest_median(rows, count)
-        if by_median is not None and by_median["series"] != winner["series"]:
+        by_median = _lowest_median(rows, count, winner)
+        if by_median is not None:
             median_name = "learned patterns" if by_median["kind"] == "learned" else by_median["label"]
-            text += (f"; lowest median: {median_name}, {by_median['median']:.2f} deg against {winner['median']:.2f} "
-                     f"(invalid pixels {100 * by_median['invalid_fraction']:.1f}% against {100 * winner['invalid_fraction']:.1f}%: "
-                     "the mean counts them at the placeholder normal, the median hardly)")
+            text += f"; lowest median: {median_name}, {by_median['median']:.2f} deg against {winner['median']:.2f}"
+            if by_median["invalid_fraction"] > winner["invalid_fraction"]:
+                text += (f" (invalid pixels {100 * by_median['invalid_fraction']:.1f}% against {100 * winner['invalid_fraction']:.1f}%: "
+                         "the mean counts them at the placeholder normal, the median hardly)")
         if count in learned_rows and all_invalid(learned_rows[count]):
             text += "; the learned patterns leave every pixel invalid"
         elif count in comparisons:
@@ -971,8 +977,8 @@ def summary_section(results: dict, summary: dict) -> list[str]:
             per_m = "learning seeds " + ", ".join(f"{seeds[count]} at M = {count}" for count in sorted(seeds))
         learning = f", learned patterns from {per_m}" + ("" if max(counts) > 1 else " (no seed spread measured)")
     lines += ["", f"Evidence: {len(results['test_scenes'])} test scenes, one noise draw per scene and method (the same draws for "
-              f"every method){learning}. A pixel the solver flags invalid (too dark, too few or too similar captures, or a fit that "
-              "faces away from the camera) counts in the MAE with the placeholder normal (0, 0, -1), facing the camera; the invalid "
+              f"every method){learning}. A pixel the solver flags invalid (too dark, too few or too similar captures, a fit that "
+              "faces away from the camera, or a point behind the camera or on a superpixel) counts in the MAE with the placeholder normal (0, 0, -1), facing the camera; the invalid "
               "share is in the tables below. Ratios are learned / other MAE: below 1, learned is better.", ""]
     return lines
 
