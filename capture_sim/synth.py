@@ -16,7 +16,6 @@ Pixels outside the mask have zero OLAT, zero normal and zero depth.
 from __future__ import annotations
 
 import numbers
-
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
