@@ -239,7 +239,8 @@ def training_loss(logits: torch.Tensor, scenes: list[ShuffledPixels], config: Tr
         loss = normal_loss(normal, pixels.normal[part], config.loss, config.angle_cap_deg)
         if config.rerender_weight > 0:
             rendered = rerender_loss(normal, albedo, capture, pixels, part)
-            terms.append((float(loss.detach()), float(rendered.detach())))
+            if parts is not None:
+                terms.append((float(loss.detach()), float(rendered.detach())))
             loss = loss + config.rerender_weight * rendered
         losses.append(loss)
     if parts is not None and terms:
