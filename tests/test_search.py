@@ -166,6 +166,17 @@ def test_trace_csv_columns_and_running_best():
     assert [float(row[-1]) for row in rows[1:]] == [5.0, 5.0, 3.0]
 
 
+def test_trace_chart_marks_where_bobyqa_probes_end():
+    from train.search import trace_figure
+
+    history = [(np.zeros(2), value) for value in (5.0, 6.0, 4.0, 4.5, 4.4, 3.0, 2.5)]
+    fig = trace_figure(history, "title", "caption", probes=5)  # P = 2: 2 P + 1 = 5 probes
+    lines = {line.get_label(): line for line in fig.axes[0].get_lines()}
+    assert list(lines["first steps after 5 probes"].get_xdata()) == [4.5, 4.5]
+    assert "first steps after 5 probes" not in {line.get_label() for line in trace_figure(history, "t", "c").axes[0].get_lines()}
+    assert len(trace_figure(history[:3], "t", "c", probes=5).axes[0].get_lines()) == 2  # stopped among the probes: no line
+
+
 def test_objective_gradient_matches_central_differences():
     # The objective jumps slightly wherever a pixel's attached-shadow mask flips (the implicit
     # gradient holds the masks fixed), so only parameters with a smooth effect are compared, at a

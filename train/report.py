@@ -1107,7 +1107,8 @@ def _search_section(results: dict, out_dir: Path) -> list[str]:
     lines = ["## NLopt searches", "", "Training-scene objective (fixed pixel subset and noise draw), then test MAE at the default noise. "
              "The start is the family's parameters of preset default (levels 0 and 1 where it has levels) with its edges softened to the "
              "search's sharpness (so that they get gradients), which can score worse than the family's binary patterns in the tables above."
-             + (" LN_BOBYQA spends its first 2 P + 1 evaluations (P parameters) on points around the start before it steps."
+             + (" LN_BOBYQA spends its first 2 P + 1 evaluations (P parameters) on points around the start before it steps (its trace "
+                "chart marks where they end)."
                 if any(method.get("series", "").endswith(":LN_BOBYQA") for method in searches) else ""), ""]
     body = []
     for method in searches:

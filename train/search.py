@@ -499,14 +499,18 @@ def trace_csv(names: list[str], history: list) -> str:
     return buffer.getvalue()
 
 
-def trace_figure(history: list, title: str, caption: str):
-    """Figure of the objective (degrees) and the best so far against the evaluation index."""
+def trace_figure(history: list, title: str, caption: str, probes: int = 0):
+    """Figure of the objective (degrees) and the best so far against the evaluation index; with
+    ``probes`` > 0 (LN_BOBYQA: 2 P + 1), a line where the algorithm's probes around the start end
+    and its steps begin (a best-so-far drop before it is a probe, not progress)."""
     from train.figures import plt
 
     values = np.array([value for _, value in history])
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     ax.plot(np.arange(values.size), values, "o", markersize=3, alpha=0.6, label="evaluation")
     ax.plot(np.arange(values.size), np.minimum.accumulate(values), "-", linewidth=2, label="best so far")
+    if 0 < probes < values.size:
+        ax.axvline(probes - 0.5, color="gray", linestyle=":", linewidth=1, label=f"first steps after {probes} probes")
     ax.set_xlabel("evaluation index")
     ax.xaxis.get_major_locator().set_params(integer=True)  # evaluations are counted, not measured
     ax.set_ylabel("mean angular error (deg)")
@@ -648,7 +652,8 @@ def _search(config: SearchConfig, out: Path, logdir: Path | None, progress: bool
             save_patterns(staging / out.name, objective.patterns(found.best_x).numpy(), meta)
             write_json(staging / config_record_path(out).name, meta["config"])
             write_text(staging / trace.name, trace_csv(names, found.history))
-            save_figure(trace_figure(found.history, f"NLopt {config.algorithm}: {config.family}, M = {config.num_patterns}", caption),
+            probes = 2 * len(names) + 1 if config.algorithm == "LN_BOBYQA" else 0  # its initial quadratic model's points
+            save_figure(trace_figure(found.history, f"NLopt {config.algorithm}: {config.family}, M = {config.num_patterns}", caption, probes),
                         staging / chart.name)
     except BaseException:
         if seen:  # stopped (Ctrl-C, an error): every evaluation made so far, not only the last flush
