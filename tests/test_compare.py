@@ -886,6 +886,19 @@ def test_report_names_externals_the_reference_flags_and_the_training_noise():
     assert "used noise scale" not in _noise_section(dict(results, noise_scales=[0.5]), aggregate_rows(results, 0.5))[2]  # one level only
 
 
+def test_cost_chart_heuristic_markers_grow_with_M():
+    """Heuristic points carry no M label (they would pile up): their size says M, the caption says so."""
+    from train.report import HEURISTIC_MARKER_SIZES, chart_mae_vs_cost
+
+    rows = aggregate_rows(fake_results(), 0.5)
+    rows.append(dict(next(row for row in rows if row["series"] == "a"), M=4, mae=8.0))
+    fig = chart_mae_vs_cost(rows, "compute_seconds", "compute (s)", "speed", "caption.")
+    heuristic_a = [line for line in fig.axes[0].get_lines() if len(line.get_ydata()) == 1 and line.get_ydata()[0] in (10.0, 8.0)]
+    assert sorted(line.get_markersize() for line in heuristic_a) == list(HEURISTIC_MARKER_SIZES[:2])
+    assert sum(1 for line in fig.axes[0].get_lines() if line.get_label() == "a") == 1  # one legend entry per family
+    assert "marker size grows with M (2, 4)" in fig.texts[-1].get_text()
+
+
 def test_summary_states_the_answer_first_against_plain_computation():
     """Per M, the most accurate method and the learned / best-heuristic ratio with the test scenes
     the learned patterns win (mean over seeds per scene); the evidence behind them."""

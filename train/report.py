@@ -364,17 +364,30 @@ def plain_log_ticks(axis) -> None:
     axis.set_minor_formatter(matplotlib.ticker.FuncFormatter(_leading_one_two_five))
 
 
+HEURISTIC_MARKER_SIZES = (5.0, 7.5, 10.0, 12.5)
+"""Marker sizes of heuristic families in the cost charts, by the rank of M (larger M: larger)."""
+
+
 def chart_mae_vs_cost(rows: list[dict], key: str, xlabel: str, title: str, caption: str):
-    """Scatter of MAE (deg) against a cost per method and M (log x axis), labelled by M."""
+    """Scatter of MAE (deg) against a cost per method and M (log x axis). Points are labelled by M,
+    except the heuristic families', whose labels would pile up where nine families sit at one M:
+    their marker grows with M instead (``HEURISTIC_MARKER_SIZES``), as the caption says."""
     fig, ax = plt.subplots(figsize=(9.0, 4.8))
     labelled, peers = [], _peers(rows)
+    counts = sorted({row["M"] for row in rows if row["kind"] == "heuristic"})
     for (kind, label, series), values in _series(rows).items():
         xs = [max(row[key], 1e-6) for row in values]
         ys = [row["mae"] for row in values]
         style = _marker_style(kind, series, peers)
+        if kind == "heuristic":
+            for index, (x, y, row) in enumerate(zip(xs, ys, values)):
+                size = HEURISTIC_MARKER_SIZES[min(counts.index(row["M"]), len(HEURISTIC_MARKER_SIZES) - 1)]
+                ax.plot([x], [y], linestyle="none", markersize=size, label=label if index == 0 else "_nolegend_", **style)
+            continue
         ax.plot(xs, ys, linestyle="none", markersize=7, label=label, **style)
-        if kind != "heuristic":  # heuristics share their M's positions: labels there would pile up
-            labelled += [(x, y, row["M"]) for x, y, row in zip(xs, ys, values)]
+        labelled += [(x, y, row["M"]) for x, y, row in zip(xs, ys, values)]
+    if len(counts) > 1:
+        caption += f" Heuristic families: marker size grows with M ({', '.join(map(str, counts))})."
     _label_counts(ax, labelled)
     _cross_out(ax, [(max(row[key], 1e-6), row["mae"]) for row in rows if all_invalid(row)])
     ax.set_xscale("log")
