@@ -813,11 +813,12 @@ def test_families_section_says_what_each_family_is_and_where_every_pixel_was_inv
 
     results = {"default_noise": 1.0, "methods": [
         method("mono_gradient", 2, 1.0, {"ill_conditioned": 1.0, "back_facing": 0.4, "grazing": 0.0}), method("mono_gradient", 4, 0.1),
-        method("tri_complementary", 2, 0.05), method("gray_noise", 4, 1.0)]}  # gray_noise: a record without flags
+        method("tri_complementary", 2, 0.05), method("gray_noise", 4, 1.0), method("mono_random", 4, 0.5)]}  # gray_noise: a record without flags
     text = "\n".join(families_section(results))
     assert "- mono_gradient: grey linear ramps" in text and "Every pixel invalid at M = 2 (flagged ill_conditioned: too few or too similar captures)." in text
     assert "- tri_complementary: R/G/B halves" in text and text.count("Every pixel invalid") == 2
     assert "- gray_noise: 0.5 grey" in text and "Every pixel invalid at M = 4." in text
+    assert "Many pixels invalid: 50% at M = 4, counted in the MAE at the placeholder normal." in text and text.count("Many pixels") == 1
     assert "three independent lighting directions" in text
     assert families_section({"default_noise": 1.0, "methods": [method("mono_gradient", 4, 0.1)]})[-2].startswith("- mono_gradient")  # no failure: no explanation
     assert families_section({"default_noise": 1.0, "methods": []}) == []

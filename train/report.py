@@ -644,12 +644,18 @@ def _main_cause(flag_shares: dict[str, float]) -> str:
     return f"{name}: {INVALIDATING_FLAGS[name]}"
 
 
+MANY_INVALID = 0.25
+"""Invalid share from which the families section names a set as a near-failure."""
+
+
 def families_section(results: dict) -> list[str]:
-    """The heuristic families compared, one line each: what its patterns are and, where every
-    pixel was invalid at the default noise, at which M and the flag on most of them (results of
-    older versions carry no flags: only the M values are given)."""
+    """The heuristic families compared, one line each: what its patterns are; where every pixel
+    was invalid at the default noise, at which M and the flag on most of them (results of older
+    versions carry no flags: only the M values are given); and where at least
+    ``MANY_INVALID`` of them were, at which M and how many."""
     default = results["default_noise"]
     failed: dict = defaultdict(list)
+    many: dict = defaultdict(list)
     names = []
     for method in results["methods"]:
         if method["kind"] != "heuristic":
@@ -658,6 +664,8 @@ def families_section(results: dict) -> list[str]:
         evaluation = _evaluation(method, default)
         if evaluation is not None and evaluation["invalid_fraction"] >= 1.0:
             failed[method["series"]].append((method["M"], evaluation.get("flagged")))
+        elif evaluation is not None and evaluation["invalid_fraction"] >= MANY_INVALID:
+            many[method["series"]].append((method["M"], evaluation["invalid_fraction"]))
     if not names:
         return []
     lines = ["## The heuristic families", ""]
@@ -668,6 +676,9 @@ def families_section(results: dict) -> list[str]:
             counts = ", ".join(str(count) for count, _ in sorted(failed[name], key=lambda item: item[0]))
             causes = {_main_cause(flagged) for _, flagged in failed[name] if flagged}
             text += f" Every pixel invalid at M = {counts}" + (f" (flagged {' or '.join(sorted(causes))})" if causes else "") + "."
+        if many[name]:
+            shares = ", ".join(f"{100 * share:.0f}% at M = {count}" for count, share in sorted(many[name]))
+            text += f" Many pixels invalid: {shares}, counted in the MAE at the placeholder normal."
         lines.append(text)
     if any(failed.values()):
         lines += ["", "A pixel needs three independent lighting directions to fix its normal. A grey set (the same light in R, G and B) "
