@@ -269,7 +269,6 @@ def invalid_note(fraction: float) -> str:
     placeholder normal (at least 99% of the pixels invalid); '' otherwise."""
     if fraction >= 1.0:
         return " (all invalid)"
-    # Rounded down: 0.99996 is not 100%.
     # Rounded to float32's precision first (0.9999 is 0.99989998), then down, never up to 100%.
     return f" ({min(math.floor(round(fraction * 1e4, 3)) / 100, 99.99):g}% invalid)" if fraction >= 0.99 else ""
 
@@ -672,15 +671,15 @@ def families_section(results: dict) -> list[str]:
     for name in names:
         family = FAMILIES.get(name)
         text = f"- {name}: {family.summary if family else 'not a family of this version'}."
-        if failed[name]:
+        if name in failed:
             counts = ", ".join(str(count) for count, _ in sorted(failed[name], key=lambda item: item[0]))
             causes = {_main_cause(flagged) for _, flagged in failed[name] if flagged}
             text += f" Every pixel invalid at M = {counts}" + (f" (flagged {' or '.join(sorted(causes))})" if causes else "") + "."
-        if many[name]:
+        if name in many:
             shares = ", ".join(f"{100 * share:.0f}% at M = {count}" for count, share in sorted(many[name]))
             text += f" Many pixels invalid: {shares}, counted in the MAE at the placeholder normal."
         lines.append(text)
-    if any(failed.values()):
+    if failed:
         lines += ["", "A pixel needs three independent lighting directions to fix its normal. A grey set (the same light in R, G and B) "
                   "gives one independent equation per pattern, so two grey patterns cannot fix a normal; near-identical patterns (gray_noise: "
                   "0.5 grey with 1% noise, the published learning start) are ill-conditioned at any M. The MAE of such a set measures "
@@ -713,11 +712,8 @@ def noise_verdict(low_noise_ratio: float, high_noise_ratio: float) -> str:
 def _trained_noise_text(results: dict) -> str:
     """' Learning and searches used noise scale 1.' where the comparison learned or searched."""
     kinds = {method["kind"] for method in results["methods"]}
-    done = [what for what, kind in (("Learning", {"learned", "rerender"}), ("searches", {"search"})) if kinds & kind]
-    if not done:
-        return ""
-    text = " and ".join(done) if len(done) == 2 else ("Learning" if done == ["Learning"] else "Searches")
-    return f" {text} used noise scale {results['default_noise']:g}."
+    text = " and ".join(what for what, kind in (("learning", {"learned", "rerender"}), ("searches", {"search"})) if kinds & kind)
+    return f" {text[0].upper() + text[1:]} used noise scale {results['default_noise']:g}." if text else ""
 
 
 def _learning_text(results: dict) -> str:
@@ -956,6 +952,12 @@ def _lowest_median(rows: list[dict], count: int, winner: dict) -> dict | None:
     return best if best["median"] < (1 - TIE_MARGIN) * winner["median"] else None
 
 
+def _summary_name(row: dict) -> str:
+    """A row's name in the summary: 'learned patterns' for the learned series (every seed's label
+    is 'learned'), else its label."""
+    return "learned patterns" if row["kind"] == "learned" else row["label"]
+
+
 def summary_section(results: dict, summary: dict) -> list[str]:
     """The answer first: per M at the default noise, the method of lowest MAE and its capture time
     (and the one of lowest median where that is clearly lower),
@@ -972,12 +974,11 @@ def summary_section(results: dict, summary: dict) -> list[str]:
             lines.append(f"- M = {count}: " + ("every method leaves every pixel invalid (see the tables)." if ran else "no method ran at this M."))
             continue
         winner = best[count]
-        name = "learned patterns" if winner["kind"] == "learned" else winner["label"]
+        name = _summary_name(winner)
         text = f"- M = {count}: lowest mean error: {name}, MAE {winner['mae']:.2f} deg (capture {winner['capture_seconds']:.2f} s)"
         by_median = _lowest_median(rows, count, winner)
         if by_median is not None:
-            median_name = "learned patterns" if by_median["kind"] == "learned" else by_median["label"]
-            text += f"; lowest median: {median_name}, {by_median['median']:.2f} deg against {winner['median']:.2f}"
+            text += f"; lowest median: {_summary_name(by_median)}, {by_median['median']:.2f} deg against {winner['median']:.2f}"
             if by_median["invalid_fraction"] > winner["invalid_fraction"]:
                 text += (f" (invalid pixels {100 * by_median['invalid_fraction']:.1f}% against {100 * winner['invalid_fraction']:.1f}%: "
                          "the mean counts them at the placeholder normal, the median hardly)")
