@@ -85,8 +85,45 @@ def test_choose_smallest_orders_by_basis_then_lobes():
         choose_smallest([], 0.5)
 
 
+def test_psnrs_above_the_ceiling_count_as_equal():
+    # Noise-free captures of one Lambertian material: the PSNRs differ by the fits' convergence.
+    curve = [Candidate(1, False, 80.6, 0.0, 0.0), Candidate(1, True, 50.2, 0.0, 0.0), Candidate(2, False, 83.1, 0.0, 0.0)]
+    chosen, best = choose_smallest(curve, 0.5, 60.0)
+    assert (chosen.num_basis, chosen.specular) == (1, False) and best.num_basis == 2  # best: as measured
+    assert choose_smallest(curve, 0.5)[0].num_basis == 2  # without a ceiling, the old rule
+    # A candidate below the ceiling still has to be within the tolerance of it.
+    chosen, _ = choose_smallest([Candidate(1, False, 59.0, 0.0, 0.0), Candidate(2, False, 70.0, 0.0, 0.0)], 0.5, 60.0)
+    assert chosen.num_basis == 2
+    table = {(j, s): 80.0 + j - (30.0 if s else 0.0) for j in range(1, 9) for s in (False, True)}
+    evaluate, calls = _scripted(table)
+    selection = select_model(evaluate, SelectionConfig())
+    # J = 2 and 3 gain nothing at the ceiling: the sweep stops after J = 3 (patience 2) and keeps J = 1.
+    assert (selection.chosen.num_basis, selection.chosen.specular) == (1, False) and len(calls) == 6
+    assert selection.stopped_early and "above 60 dB counted as 60" in selection.rule
+    selection = select_model(evaluate, SelectionConfig(psnr_ceiling_db=math.inf))
+    assert selection.chosen.num_basis == 8 and "counted as" not in selection.rule
+
+
+@pytest.mark.slow
+def test_selection_picks_one_lambertian_basis_for_noise_free_captures():
+    """A uniform Lambertian sphere without noise scored 80.6 dB with J = 1 and 83.1 with J = 2,
+    which the bare 0.5 dB rule took for a second material."""
+    rig = load_rig()
+    pixels = scene_pixels(synthesize_scene("sphere", "lambertian", rig, 40, 48, seed=1), rig)
+    olat = pixels.transport.matrix.permute(1, 2, 0)
+    split, exposure = split_lights(olat.shape[0]), auto_exposure(olat)
+    captures = (olat * exposure).clamp(0, 1)
+    problem = FitProblem(captures[split.train], olat_emission(split.train, olat.shape[0], exposure), pixels.points, pixels.lights(),
+                         rig.falloff, pixels.transport.pixel_index, 40, 48)
+    selection = select_basis(problem, olat_emission(split.validation, olat.shape[0], exposure), captures[split.validation],
+                             FitConfig(seed=0), SelectionConfig(iterations=60))
+    assert min(candidate.psnr for candidate in selection.curve if not candidate.specular) > 60.0  # the case in point
+    assert (selection.chosen.num_basis, selection.chosen.specular) == (1, False)
+
+
 def test_selection_config_rejects_bad_settings():
-    for bad in (dict(max_basis=0), dict(patience=0), dict(iterations=0), dict(tolerance_db=-1.0), dict(far_field_tolerance=-0.1)):
+    for bad in (dict(max_basis=0), dict(patience=0), dict(iterations=0), dict(tolerance_db=-1.0), dict(far_field_tolerance=-0.1),
+                dict(psnr_ceiling_db=0.0), dict(psnr_ceiling_db=math.nan)):
         with pytest.raises(InputError):
             SelectionConfig(**bad)
 

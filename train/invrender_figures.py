@@ -166,8 +166,9 @@ def _selection_chart(path: Path, selection, selection_config: SelectionConfig) -
     for specular, colour, label in ((False, "tab:blue", "Lambertian bases"), (True, "tab:orange", "GGX specular bases")):
         points = sorted((c.num_basis, c.psnr) for c in selection.curve if c.specular == specular)
         ax.plot([p[0] for p in points], [p[1] for p in points], marker="o", color=colour, label=label)
-    best = selection.best.psnr
-    ax.axhspan(best - selection_config.tolerance_db, best, color="0.85", label=f"within {selection_config.tolerance_db:g} dB of best")
+    best, ceiling = selection.best.psnr, selection_config.psnr_ceiling_db
+    band = f"within {selection_config.tolerance_db:g} dB of best" + (f" (PSNRs counted as at most {ceiling:g} dB)" if best > ceiling else "")
+    ax.axhspan(min(best, ceiling) - selection_config.tolerance_db, best, color="0.85", label=band)
     chosen = selection.chosen
     ax.plot([chosen.num_basis], [chosen.psnr], marker="*", markersize=16, color="tab:red", linestyle="none",
             label=f"chosen: J = {chosen.num_basis}, {'specular' if chosen.specular else 'Lambertian'}")
