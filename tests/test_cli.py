@@ -496,6 +496,22 @@ def test_symbolic_link_loops_and_non_utf8_logdirs_give_one_line(tmp_path, scene_
         assert err.endswith(f"{tmp_path / 'staged' / 'sub'} is a broken symbolic link (to {tmp_path / 'missing'})"), err
 
 
+def test_patterns_make_records_a_seed_only_where_it_draws_the_values(tmp_path, capsys):
+    def meta(name):
+        return json.loads(np.load(tmp_path / name)["meta"].item())
+
+    assert run(["patterns", "make", "--family", "tri_random", "--M", "2", "--seed", "5", "--out", str(tmp_path / "r5.npz")]) == 0
+    assert run(["patterns", "make", "--family", "tri_random", "--M", "2", "--out", str(tmp_path / "r0.npz")]) == 0
+    assert meta("r5.npz")["seed"] == 5 and meta("r0.npz")["seed"] == 0
+    assert not np.array_equal(np.load(tmp_path / "r5.npz")["patterns"], np.load(tmp_path / "r0.npz")["patterns"])
+    capsys.readouterr()
+    assert run(["patterns", "make", "--family", "olat", "--M", "4", "--seed", "5", "--out", str(tmp_path / "o.npz")]) == 0
+    assert "warning: --seed has no effect on family olat" in capsys.readouterr().err
+    assert "seed" not in meta("o.npz") and meta("o.npz")["parameters"]["row_2"] == 8.0
+    assert run(["patterns", "make", "--family", "olat", "--M", "4", "--out", str(tmp_path / "o0.npz")]) == 0
+    assert "warning" not in capsys.readouterr().err and "seed" not in meta("o0.npz")
+
+
 def test_patterns_make_and_export_round_trip(tmp_path):
     patterns = tmp_path / "p.npz"
     assert run(["patterns", "make", "--family", "tri_complementary", "--M", "2", "--out", str(patterns)]) == 0

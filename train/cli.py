@@ -135,7 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
     make.add_argument("--M", type=int, required=True, dest="num_patterns", help="number of patterns")
     make.add_argument("--out", type=_pattern_output, required=True, help="pattern file to write (.npz)")
     make.add_argument("--preset", default="default", help="'default' (off level 0, on level 1) or 'ddps' (the published 0.1/0.9 levels; tri_gradient keeps its published 0/1 levels in both, and the random families have no levels)")
-    make.add_argument("--seed", type=int, default=0, help="seed of the random families")
+    make.add_argument("--seed", type=int, default=None, help="seed of the random families (default 0; the other families draw nothing)")
     make.add_argument("--rig", default=DEFAULT_RIG, help=RIG_HELP)
     make.set_defaults(handler=_patterns_make)
     listing = patterns.add_parser("list", help="list families and their parameters")
@@ -485,13 +485,18 @@ def _patterns_make(args) -> None:
 
     refuse_overwriting([("--out", args.out)], [("--rig file", args.rig)])
     rig = load_rig(args.rig)
-    values = make_patterns(args.family, args.num_patterns, rows=rig.rows, cols=rig.cols, preset=args.preset, seed=args.seed)
+    seed = 0 if args.seed is None else args.seed
+    values = make_patterns(args.family, args.num_patterns, rows=rig.rows, cols=rig.cols, preset=args.preset, seed=seed)
     family = get_family(args.family)
     if family.values_are_parameters:  # listing them would make the meta several times the values' size
         parameters = f"the {values.numel()} pattern values (family, seed and preset reproduce them)"
+        drawn = {"seed": seed}
     else:
-        parameters = {p.name: p.default for p in family.parameters(args.num_patterns, rig.rows, rig.cols, args.preset, args.seed)}
-    save_patterns(args.out, values, {"family": args.family, "preset": args.preset, "seed": args.seed, "rig": rig.name,
+        parameters = {p.name: p.default for p in family.parameters(args.num_patterns, rig.rows, rig.cols, args.preset, seed)}
+        drawn = {}  # a seed the values do not depend on is not recorded as if they did
+        if args.seed is not None:
+            warnings.warn(f"--seed has no effect on family {args.family}: only the random families draw values", DisplexWarning, stacklevel=2)
+    save_patterns(args.out, values, {"family": args.family, "preset": args.preset, **drawn, "rig": rig.name,
                                      "parameters": parameters, "made_by": "displex patterns make"})
     print(f"wrote {args.family} M={args.num_patterns} to {args.out}")
 
