@@ -53,3 +53,28 @@ def test_sweep_flag_needs_the_ps_target():
     from train.cli import run
 
     assert run(["bench", "sim", "--sweep"]) == 2
+
+
+def test_sweep_writes_its_json_and_chart_together(tiny_scenes, tmp_path, monkeypatch):
+    import train.bench as bench
+    from train.cli import run
+
+    document = noise_sweep(tiny_scenes, (0.0,), (("ps", "mono_gradient", 4),), progress=False)
+    monkeypatch.setattr(bench, "noise_sweep", lambda *args, **kwargs: dict(document))
+    monkeypatch.setattr(bench, "default_split", lambda *args, **kwargs: [])
+    out = tmp_path / "sweep.json"
+    bench.run_sweep(out, (16, 20), progress=False)
+    assert json.loads(out.read_text())["target"] == "ps_sweep" and out.with_suffix(".png").stat().st_size > 1000
+    before = (out.read_bytes(), out.with_suffix(".png").read_bytes())
+
+    def broken_chart(*args):
+        raise RuntimeError("no chart")
+
+    monkeypatch.setattr(bench, "sweep_chart", broken_chart)
+    with pytest.raises(RuntimeError):
+        bench.run_sweep(out, (16, 20), progress=False)
+    # A failed chart leaves the earlier run's pair as it was, not a new JSON beside an old chart.
+    assert (out.read_bytes(), out.with_suffix(".png").read_bytes()) == before
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["sweep.json", "sweep.png"]
+    # A JSON named .png would be overwritten by its own chart.
+    assert run(["bench", "ps", "--sweep", "--json", str(tmp_path / "sweep2.png")]) == 2

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import write_json
+from capture_sim.atomic import staged_files, write_json
 from capture_sim.display import display_emission
 from capture_sim.errors import InputError
 from capture_sim.rig import check_noise_scale, load_rig
@@ -403,7 +403,8 @@ def sweep_chart(document: dict, path: Path, caption: str) -> None:
 def run_sweep(json_path: Path | None, size: tuple[int, int] | None = None, noise_scales=SWEEP_NOISE_SCALES, methods=SWEEP_METHODS, seed: int = 0, progress: bool = True) -> dict:
     """``displex bench ps --sweep``: the noise sweep on the default synthetic test scenes.
 
-    Writes the JSON to ``json_path`` and the chart next to it (same name, .png).
+    Writes the JSON to ``json_path`` and the chart next to it (same name, .png), moved into place
+    together (a chart that fails leaves an earlier run's pair as it was).
     """
     rig = load_rig()
     size = size or default_scene_size(rig)
@@ -412,12 +413,14 @@ def run_sweep(json_path: Path | None, size: tuple[int, int] | None = None, noise
     document = noise_sweep(scenes, noise_scales, methods, seed, progress)
     document.update({"target": "ps_sweep", "size": list(size), "rig": rig.name, "seconds": time.perf_counter() - start, "machine": machine_info()})
     if json_path is not None:
-        write_json(json_path, document)
+        json_path = Path(json_path)
         caption = (
             f"Default synthetic test scenes at {size[0]}x{size[1]}, auto exposure; MAE averaged over the scenes' masked "
             "pixels, then over scenes. Noise scale multiplies the rig's shot and read noise variances."
         )
-        sweep_chart(document, Path(json_path).with_suffix(".png"), caption)
+        with staged_files(json_path.parent, last=(json_path.name,)) as staging:
+            sweep_chart(document, staging / json_path.with_suffix(".png").name, caption)
+            write_json(staging / json_path.name, document)
     return document
 
 

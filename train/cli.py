@@ -449,6 +449,8 @@ def _bench(args) -> None:
         from train.bench import run_sweep
 
         # The chart goes next to the JSON, same name, .png; both are checked before the work.
+        if args.json is not None and args.json.suffix.lower() == ".png":
+            raise InputError(f"--json {args.json}: the sweep writes its chart under that name (.png); name the JSON .json")
         refuse_overwriting([("--json", args.json), ("chart", None if args.json is None else args.json.with_suffix(".png"))], [])
         document = run_sweep(args.json, args.size)
         for row in document["methods"]:
