@@ -209,6 +209,24 @@ def test_damaged_or_foreign_checkpoints_are_refused(tmp_path, scene_dirs):
         train_patterns(config, tmp_path / "a.npz", progress=False, checkpoint_mode="maybe")
 
 
+def test_a_stale_checkpoint_is_refused_before_the_scenes_are_read(tmp_path, scene_dirs, monkeypatch):
+    config = _config(scene_dirs, steps=2, val_every=0)
+    train_patterns(config, tmp_path / "a.npz", progress=False)
+    checkpoint = (tmp_path / "a.ckpt.pt").read_bytes()
+    read = []
+    real_resolve = learn.resolve_scenes
+    monkeypatch.setattr(learn, "resolve_scenes", lambda *args, **kwargs: read.append(args[1]) or real_resolve(*args, **kwargs))
+    # Default scenes would be synthesised first: a refusal must not wait for them.
+    with pytest.raises(InputError, match=r"another config \(steps differ\)"):
+        train_patterns(_config(scene_dirs, steps=3, val_every=0), tmp_path / "a.npz", progress=False)
+    assert read == []
+    # --fresh deletes the checkpoint only once the scenes have loaded: bad scenes leave it.
+    monkeypatch.setattr(learn, "resolve_scenes", lambda *args, **kwargs: (_ for _ in ()).throw(InputError("no such scene")))
+    with pytest.raises(InputError, match="no such scene"):
+        train_patterns(_config(scene_dirs, steps=3, val_every=0), tmp_path / "a.npz", progress=False, checkpoint_mode="fresh")
+    assert (tmp_path / "a.ckpt.pt").read_bytes() == checkpoint
+
+
 def test_checkpoint_of_scene_files_rewritten_since_is_refused(tmp_path, scene_dirs):
     """A finished or interrupted run made from scene files that were rewritten since neither resumes
     on them nor reports its old validation as theirs."""

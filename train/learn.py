@@ -427,11 +427,6 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
     began = time.perf_counter()
     check_logdir(logdir)  # before the scenes, which can take a while
     rig = load_rig(config.rig)
-    train_scenes = training_samplers([scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed)], config)
-    # Validating a user's training scenes against the synthetic defaults would report a number about
-    # scenes nobody asked for: without val_scenes, only the default training set validates.
-    validate = bool(config.val_scenes) or not config.scenes
-    val_scenes = [scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.val_scenes, "test", rig, config.scene_size, config.scene_seed)] if validate else []
     logits = patterns_to_logits(initial_patterns(config, rig.rows, rig.cols)).detach().requires_grad_()
     optimiser = torch.optim.Adam([logits], lr=config.learning_rate)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimiser, cosine_schedule(config))
@@ -439,13 +434,20 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
     start_step, val_history, loss_value, earlier_seconds = 0, [], float("nan"), 0.0
     checkpoint = checkpoint_path(out)
     state = None
+    # The checkpoint is read before the scenes: one of another config is refused at once, not
+    # after the default scenes are synthesised (--fresh deletes it once they have loaded).
     if checkpoint.exists() and checkpoint_mode != "fresh":
         try:
             state = load_checkpoint(checkpoint, identity)
         except InputError:
             if checkpoint_mode == "resume":
                 raise
-    elif checkpoint.exists():
+    train_scenes = training_samplers([scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed)], config)
+    # Validating a user's training scenes against the synthetic defaults would report a number about
+    # scenes nobody asked for: without val_scenes, only the default training set validates.
+    validate = bool(config.val_scenes) or not config.scenes
+    val_scenes = [scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.val_scenes, "test", rig, config.scene_size, config.scene_seed)] if validate else []
+    if checkpoint_mode == "fresh" and checkpoint.exists():
         checkpoint.unlink()
     if state is not None:
         with torch.no_grad():
