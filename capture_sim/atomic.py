@@ -66,10 +66,13 @@ def separate_json(json_path: str | Path | None, out: str | Path | None, name: st
 
 
 def check_replaceable(path: str | Path) -> None:
-    """Raise ``InputError`` if ``path`` exists and is not a regular file (a rename would silently
-    replace a device, FIFO or socket, e.g. /dev/null run as root, and a folder would fail with the
-    temporary file's name), or if a file stands where one of its folders would be created."""
+    """Raise ``InputError`` if ``path`` names a folder ('.', '/', 'x/..') or exists and is not a
+    regular file (a rename would silently replace a device, FIFO or socket, e.g. /dev/null run as
+    root, and a folder would fail with the temporary file's name), or if a file stands where one of
+    its folders would be created."""
     path = Path(path)
+    if path.name in ("", ".."):  # '.', '/', 'x/..': a folder whatever exists (and no name to stage a file under)
+        raise InputError(f"cannot write {path}: it names a folder, not a file")
     if path.exists() and not path.is_file():
         raise InputError(f"cannot write {path}: it exists and is not a regular file")
     check_folder_place(path.parent, f"cannot write {path}")

@@ -246,6 +246,10 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         (["evaluate", "--patterns", "olat", "--scenes", str(scene_file), "--exposure", "1e-300"], "exposure 1e-300 is too small"),
         (["bench", "sim", "--repeats", "1", "--json", str(tmp_path / "twin")], "exists and is not a regular file"),
         (["bench", "ps", "--sweep", "--json", str(tmp_path / "sweep.png")], "would destroy"),
+        # A name that can only be a folder (its chart's name was formed from it: a traceback).
+        (["bench", "ps", "--sweep", "--json", "."], "names a folder, not a file"),
+        (["bench", "ps", "--sweep", "--json", str(tmp_path / "missing" / "..")], "names a folder, not a file"),
+        (["bench", "sim", "--repeats", "1", "--json", "/"], "names a folder, not a file"),
         (["bench", "ps", "--sweep", "--repeats", "3"], "--repeats applies to the timing benchmarks"),
         # An output path that is a folder fails before any work (train used to learn first).
         (["train", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "folder.npz")], "exists and is not a regular file"),
