@@ -263,10 +263,14 @@ def scene_paths(paths) -> list[Path]:
 
 def file_fingerprints(paths) -> list[list]:
     """[absolute path, size in bytes, modification time in ns] of each file: what a run records of
-    the files it was made from, so that a file rewritten or replaced since is noticed."""
+    the files it was made from, so that a file rewritten or replaced since is noticed
+    (``InputError`` for a file that is not there, such as a broken link)."""
     fingerprints = []
     for path in paths:
-        status = Path(path).stat()
+        try:
+            status = Path(path).stat()
+        except FileNotFoundError:  # e.g. a broken link listed in a scene folder
+            raise InputError(f"file not found: {path}") from None
         fingerprints.append([str(Path(path).resolve()), status.st_size, status.st_mtime_ns])
     return fingerprints
 

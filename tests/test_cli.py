@@ -245,11 +245,16 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
          "is also the --rig file"),
         (["evaluate", "--patterns", "olat", "--scenes", str(scene_file), "--exposure", "1e-300"], "exposure 1e-300 is too small"),
         (["bench", "sim", "--repeats", "1", "--json", str(tmp_path / "twin")], "exists and is not a regular file"),
-        (["bench", "ps", "--sweep", "--json", str(tmp_path / "sweep.png")], "would destroy"),
+        (["bench", "ps", "--sweep", "--json", str(tmp_path / "sweep.png")], "the sweep writes its chart under that name"),
         # A name that can only be a folder (its chart's name was formed from it: a traceback).
         (["bench", "ps", "--sweep", "--json", "."], "names a folder, not a file"),
         (["bench", "ps", "--sweep", "--json", str(tmp_path / "missing" / "..")], "names a folder, not a file"),
         (["bench", "sim", "--repeats", "1", "--json", "/"], "names a folder, not a file"),
+        # Path() drops a trailing '/' or '/.': 'x/' was written as a file x.
+        (["bench", "sim", "--repeats", "1", "--json", str(tmp_path / "newdir") + "/"], "names a folder, not a file"),
+        (["patterns", "make", "--family", "olat", "--M", "2", "--out", str(tmp_path / "p.npz") + "/."], "names a folder, not a file"),
+        # A JSON named .PNG is its own chart on a case-insensitive file system.
+        (["bench", "ps", "--sweep", "--json", str(tmp_path / "sweep.PNG")], "the sweep writes its chart under that name"),
         (["bench", "ps", "--sweep", "--repeats", "3"], "--repeats applies to the timing benchmarks"),
         # An output path that is a folder fails before any work (train used to learn first).
         (["train", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "folder.npz")], "exists and is not a regular file"),

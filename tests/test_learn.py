@@ -227,6 +227,14 @@ def test_a_stale_checkpoint_is_refused_before_the_scenes_are_read(tmp_path, scen
     assert (tmp_path / "a.ckpt.pt").read_bytes() == checkpoint
 
 
+def test_a_broken_link_in_a_scene_folder_is_one_error(tmp_path, scene_dirs):
+    folder = tmp_path / "scenes"
+    shutil.copytree(scene_dirs[0], folder)
+    (folder / "zz-broken.npz").symlink_to(tmp_path / "nonexistent.npz")
+    with pytest.raises(InputError, match="not found: .*zz-broken.npz"):
+        train_patterns(_config(scene_dirs, scenes=(str(folder),)), tmp_path / "a.npz", progress=False)
+
+
 def test_checkpoint_of_scene_files_rewritten_since_is_refused(tmp_path, scene_dirs):
     """A finished or interrupted run made from scene files that were rewritten since neither resumes
     on them nor reports its old validation as theirs."""

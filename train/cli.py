@@ -52,6 +52,15 @@ def _path(text: str) -> Path:
     return Path(text)
 
 
+def _file_output(text: str) -> Path:
+    """A file to write: ``_path``, and one written as a folder ('x/', 'x/.', '.', 'x/..') is refused
+    here, where the text still says so (``Path`` drops a trailing '/' and '.': 'x/' became a file x)."""
+    path = _path(text)
+    if text.endswith(("/", "/.", "/..")) or text in (".", ".."):
+        raise argparse.ArgumentTypeError(f"{text} names a folder, not a file")
+    return path
+
+
 def _patterns_or_olat(text: str) -> str:
     """``--patterns`` of evaluate and invrender: 'olat' or a pattern file (an empty path is refused)."""
     if text != "olat":
@@ -63,7 +72,7 @@ def _pattern_output(text: str) -> Path:
     """A pattern file to write, named .npz (``patterns.io.check_pattern_output``)."""
     from patterns.io import check_pattern_output
 
-    path = _path(text)
+    path = _file_output(text)
     try:
         check_pattern_output(path)
     except InputError as err:
@@ -151,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--exposure", default="rig", help=EXPOSURE_HELP)
     evaluate.add_argument("--rig", default=None, help=INPUT_RIG_HELP)
     evaluate.add_argument("--seed", type=int, default=0, help="seed of the simulated noise")
-    evaluate.add_argument("--json", type=_path, default=None, help="write results JSON here")
+    evaluate.add_argument("--json", type=_file_output, default=None, help="write results JSON here")
     evaluate.add_argument("--out", type=_path, default=None, help="folder for normal maps, error maps, summary figure")
     evaluate.set_defaults(handler=_evaluate)
 
@@ -218,7 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
     # global value stands (a subcommand default would overwrite it).
     invrender.add_argument("--threads", type=_thread_count, default=argparse.SUPPRESS, dest="torch_threads", metavar="T",
                            help="same as `displex --threads T invrender ...`")
-    invrender.add_argument("--json", type=_path, default=None, help="write the result JSON here")
+    invrender.add_argument("--json", type=_file_output, default=None, help="write the result JSON here")
     invrender.add_argument("--out", type=_path, default=None, help="folder for normals, basis weights, figures, result.json, config.json and TensorBoard logs")
     invrender.set_defaults(handler=_invrender)
 
@@ -229,7 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = commands.add_parser("bench", help="benchmarks written as JSON (medians of several runs)")
     bench.add_argument("target", help="what to benchmark: sim, ps, train (about a minute each), invrender (a few minutes)")
-    bench.add_argument("--json", type=_path, default=None, help="write the results here")
+    bench.add_argument("--json", type=_file_output, default=None, help="write the results here")
     bench.add_argument("--repeats", type=int, default=None, help="timed runs per measurement, whose median is reported (default: 5; not with --sweep, which times nothing)")
     bench.add_argument(
         "--sweep", action="store_true", help="with target ps: normal error against noise level for several methods (JSON and a chart next to it)"
@@ -449,7 +458,10 @@ def _bench(args) -> None:
         from train.bench import run_sweep
 
         # The chart goes next to the JSON, same name, .png; both are checked before the work (the
-        # JSON alone first: a folder such as '.' has no name to give the chart).
+        # JSON alone first: a folder such as '.' has no name to give the chart). A JSON named .PNG
+        # would be its chart on a case-insensitive file system, which path comparison cannot see.
+        if args.json is not None and args.json.suffix.lower() == ".png":
+            raise InputError(f"--json {args.json}: the sweep writes its chart under that name (.png); name the JSON .json")
         refuse_overwriting([("--json", args.json)], [])
         refuse_overwriting([("--json", args.json), ("chart", None if args.json is None else args.json.with_suffix(".png"))], [])
         document = run_sweep(args.json, args.size)
