@@ -427,6 +427,19 @@ def test_ctrl_c_gives_one_line_with_the_resume_hint(tmp_path, scene_file, capsys
     assert run(command) == 130
     err = capsys.readouterr().err.strip()
     assert err.startswith("displex: interrupted; rerun the same command") and err.endswith("k.ckpt.pt") and "\n" not in err, err
+    # With --fresh the same command starts again: an earlier run's checkpoint is not resumed by it,
+    # and one this run wrote is resumed without --fresh.
+    assert run([*command, "--fresh"]) == 130
+    assert capsys.readouterr().err.strip() == "displex: interrupted; no checkpoint was written yet; rerun the same command to start again"
+
+    def writes_a_checkpoint(*args, **kwargs):
+        (tmp_path / "k.ckpt.pt").write_bytes(b"new")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("train.learn.train_patterns", writes_a_checkpoint)
+    assert run([*command, "--fresh"]) == 130
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("displex: interrupted; rerun it without --fresh to resume") and err.endswith("k.ckpt.pt"), err
     # A Ctrl-C before the command starts (while the parser is built) is the same one line.
     monkeypatch.setattr("train.cli.build_parser", interrupted)
     assert run(command) == 130

@@ -269,7 +269,9 @@ def _flag_names(overrides: dict, **special: str) -> dict:
 
 def _train(args) -> None:
     from train.config_io import load_config
-    from train.learn import TrainConfig, names_pattern_file, output_files, train_patterns
+    from train.learn import TrainConfig, checkpoint_path, names_pattern_file, output_files, train_patterns
+
+    args.earlier_checkpoint = _file_stamp(checkpoint_path(args.out))  # for the Ctrl-C hint of a --fresh run
 
     overrides = {
         "num_patterns": args.num_patterns,
@@ -334,6 +336,11 @@ def _train_interrupted(args) -> str:
     checkpoint = checkpoint_path(args.out)
     if not checkpoint.exists():
         return "no checkpoint was written yet; rerun the same command to start again"
+    if args.fresh:
+        # The same command would start afresh again; an earlier run's checkpoint is not this one's.
+        if not hasattr(args, "earlier_checkpoint") or _file_stamp(checkpoint) == args.earlier_checkpoint:
+            return "no checkpoint was written yet; rerun the same command to start again"
+        return f"rerun it without --fresh to resume from its last checkpoint, {checkpoint}"
     return f"rerun the same command to resume from its last checkpoint, {checkpoint}"
 
 
