@@ -464,12 +464,11 @@ def _bench(args) -> None:
             raise InputError(f"--sweep applies to target ps, not {args.target!r}")
         from train.bench import run_sweep
 
-        # The chart goes next to the JSON, same name, .png; both are checked before the work (the
-        # JSON alone first: a folder such as '.' has no name to give the chart). A JSON named .PNG
-        # would be its chart on a case-insensitive file system, which path comparison cannot see.
+        # The chart goes next to the JSON, same name, .png; both are checked before the work. A
+        # JSON named .PNG would be its chart on a case-insensitive file system, which path
+        # comparison cannot see.
         if args.json is not None and args.json.suffix.lower() == ".png":
             raise InputError(f"--json {args.json}: the sweep writes its chart under that name (.png); name the JSON .json")
-        refuse_overwriting([("--json", args.json)], [])
         refuse_overwriting([("--json", args.json), ("chart", None if args.json is None else args.json.with_suffix(".png"))], [])
         document = run_sweep(args.json, args.size)
         for row in document["methods"]:
