@@ -334,14 +334,12 @@ def _train_interrupted(args) -> str:
     from train.learn import checkpoint_path
 
     checkpoint = checkpoint_path(args.out)
-    if not checkpoint.exists():
+    # With --fresh the same command starts afresh: an earlier run's checkpoint is not this one's.
+    earlier = args.fresh and (not hasattr(args, "earlier_checkpoint") or _file_stamp(checkpoint) == args.earlier_checkpoint)
+    if not checkpoint.exists() or earlier:
         return "no checkpoint was written yet; rerun the same command to start again"
-    if args.fresh:
-        # The same command would start afresh again; an earlier run's checkpoint is not this one's.
-        if not hasattr(args, "earlier_checkpoint") or _file_stamp(checkpoint) == args.earlier_checkpoint:
-            return "no checkpoint was written yet; rerun the same command to start again"
-        return f"rerun it without --fresh to resume from its last checkpoint, {checkpoint}"
-    return f"rerun the same command to resume from its last checkpoint, {checkpoint}"
+    rerun = "rerun it without --fresh" if args.fresh else "rerun the same command"
+    return f"{rerun} to resume from its last checkpoint, {checkpoint}"
 
 
 def _search_interrupted(args) -> str:
