@@ -548,6 +548,30 @@ def test_patterns_make_and_export_round_trip(tmp_path):
     assert np.abs(original - back).max() <= 1 / 255
 
 
+def test_evaluate_refuses_bad_outputs_before_reading_scenes(tmp_path, capsys, monkeypatch):
+    """--json and --out's fixed files are checked before the scenes are read (the default scenes
+    take seconds to synthesise); the scene maps' names need the scenes and are checked after."""
+    import train.evaluate_command as evaluate_command
+
+    def no_scenes(*args, **kwargs):
+        raise AssertionError("scenes were read before the outputs were checked")
+
+    monkeypatch.setattr(evaluate_command, "resolve_scenes", no_scenes)
+    blocker = tmp_path / "a-file"
+    blocker.write_text("x")
+    patterns = tmp_path / "mono.npz"
+    assert run(["patterns", "make", "--family", "mono_gradient", "--M", "4", "--out", str(patterns)]) == 0
+    capsys.readouterr()
+    for extra, message in (
+        (["--json", str(blocker / "r.json")], "is a file, not a folder"),
+        (["--json", str(patterns)], "is also the pattern file"),
+        (["--out", str(tmp_path / "o"), "--json", str(tmp_path / "o" / "summary.png")], "summary.png"),
+    ):
+        assert run(["evaluate", "--patterns", str(patterns), *extra]) == 2
+        error = capsys.readouterr().err.strip()
+        assert message in error and len(error.splitlines()) == 1, error
+
+
 def test_evaluate_json_matches_saved_normal_maps(tmp_path, scene_file):
     patterns = tmp_path / "mono.npz"
     assert run(["patterns", "make", "--family", "mono_gradient", "--M", "4", "--out", str(patterns)]) == 0
