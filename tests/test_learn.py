@@ -63,6 +63,17 @@ def test_same_seed_same_patterns_and_resume_matches(tmp_path, scene_dirs, monkey
     assert [step for step, _ in first.val_history] == [2, 4]
 
 
+def test_a_writer_sorts_after_an_event_file_of_its_own_second(tmp_path):
+    """TensorBoard reads event files in name order (a resumed run's purge relies on it); a file of
+    the same second may sort after the new one (its counter 9 after 10, another host name)."""
+    earlier = tmp_path / f"events.out.tfevents.{int(time.time()):010d}.zzzz.1.9"
+    earlier.write_bytes(b"")
+    writer = learn.summary_writer(tmp_path, first_new_step=3)
+    writer.close()
+    names = sorted(path.name for path in tmp_path.glob("events.out.tfevents.*"))
+    assert len(names) == 2 and names[0] == earlier.name
+
+
 def test_tensorboard_log_of_a_resumed_run_has_each_step_once_with_the_rate_it_used(tmp_path, scene_dirs, monkeypatch):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 

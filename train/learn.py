@@ -527,7 +527,23 @@ def summary_writer(logdir: Path | None, first_new_step: int | None = None):
         return None
     from torch.utils.tensorboard import SummaryWriter
 
+    wait_for_a_later_event_file_name(Path(name))
     return SummaryWriter(name, purge_step=first_new_step)
+
+
+def wait_for_a_later_event_file_name(folder: Path) -> None:
+    """Sleep into the next second if an event file in ``folder`` was created in this one.
+
+    TensorBoard reads a folder's event files in name order, and a resumed run's purge of the
+    steps it logs again holds only for files read before its own. A name is the creation second
+    followed by host, process id and a per-process counter, so two writers of one second can sort
+    out of order (counter 10 sorts before 9). A later second always sorts after.
+    """
+    seconds = [int(part[3]) for part in (path.name.split(".") for path in folder.glob("events.out.tfevents.*"))
+               if len(part) > 3 and part[3].isdigit()]
+    now = time.time()
+    if seconds and max(seconds) == int(now):
+        time.sleep(1.0 - now % 1.0 + 0.01)
 
 
 def check_logdir(logdir: Path | None) -> str | None:
