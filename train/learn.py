@@ -527,11 +527,11 @@ def summary_writer(logdir: Path | None, first_new_step: int | None = None):
         return None
     from torch.utils.tensorboard import SummaryWriter
 
-    wait_for_a_later_event_file_name(Path(name))
+    _wait_for_a_later_event_file_name(Path(name))
     return SummaryWriter(name, purge_step=first_new_step)
 
 
-def wait_for_a_later_event_file_name(folder: Path) -> None:
+def _wait_for_a_later_event_file_name(folder: Path) -> None:
     """Sleep into the next second if an event file in ``folder`` was created in this one.
 
     TensorBoard reads a folder's event files in name order, and a resumed run's purge of the
