@@ -521,7 +521,8 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
 def summary_writer(logdir: Path | None, first_new_step: int | None = None):
     """A TensorBoard writer for the folder ``logdir`` (created if needed), or None without one.
     With ``first_new_step``, the events an earlier run logged in the folder at that step and later
-    are hidden, whichever run logged them: this run logs them again (a resumed learning run)."""
+    are hidden, whichever run logged them: this run logs them again (a resumed learning run). It may
+    wait up to 1 s so that its event file sorts after the folder's earlier ones."""
     name = check_logdir(logdir)
     if name is None:
         return None
