@@ -297,6 +297,17 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
     assert sorted(path.name for path in (tmp_path / "sim").iterdir()) == ["contact_sheet.png"]
 
 
+def test_a_file_output_written_as_a_folder_is_refused_with_either_separator(monkeypatch):
+    """On Windows both '\\' and '/' end a folder name ('out\\' would become a file 'out')."""
+    import train.cli
+
+    monkeypatch.setattr(train.cli.os, "altsep", "\\")
+    for text in ("out\\", "out\\.", "out\\..", "out/"):
+        with pytest.raises(argparse.ArgumentTypeError, match="names a folder"):
+            train.cli._file_output(text)
+    assert train.cli._file_output("out\\p.npz") == Path("out\\p.npz")
+
+
 def interrupted_move(folder: Path, moves: int = 1):
     """An ``os.replace`` that raises KeyboardInterrupt at the move into ``folder`` after ``moves``
     of them (the staged files moving into place), renaming as usual otherwise."""

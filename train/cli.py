@@ -56,7 +56,8 @@ def _file_output(text: str) -> Path:
     """A file to write: ``_path``, and one written as a folder ('x/', 'x/.', '.', 'x/..') is refused
     here, where the text still says so (``Path`` drops a trailing '/' and '.': 'x/' became a file x)."""
     path = _path(text)
-    if text.endswith(("/", "/.", "/..")) or text in (".", ".."):
+    separators = [separator for separator in (os.sep, os.altsep) if separator]  # '\\' and '/' on Windows
+    if text in (".", "..") or text.endswith(tuple(separator + tail for separator in separators for tail in ("", ".", ".."))):
         raise argparse.ArgumentTypeError(f"{text} names a folder, not a file")
     return path
 
