@@ -163,7 +163,7 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
 
     Returns:
         normal (N, 3) unit normals facing the camera, albedo (N, 3) >= 0; finite, differentiable
-        in ``captures`` and ``emission``. As in ``solve_ps``, the albedo's gradient in the
+        in ``captures`` and ``emission`` (no gradient flows to points or lights). As in ``solve_ps``, the albedo's gradient in the
         emission grows as 1 / (emission peak)^2 and overflows for tiny emission (float32 at a
         peak of about 1e-19, float64 below about 1e-154): give emission in units near 1.
     """
@@ -184,7 +184,9 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
     if num_pixels == 0:
         empty = captures[0] * 0 + emission.sum() * 0  # (0, 3), on both inputs' graphs (zero gradients, not None)
         return empty, empty.clone()
-    points, lights = points.to(dtype), lights.to(dtype)
+    # Geometry is a constant, as in ``solve_ps``: a caller's lights that require grad would
+    # otherwise get a partial gradient through the lighting matrix (its p_k term only).
+    points, lights = points.detach().to(dtype), lights.detach().to(dtype)
     if reach is None:
         reach = light_reach(points, lights, falloff)
     # Shape only: reach is geometry from ``light_reach`` (finite by construction), and a finiteness

@@ -117,6 +117,15 @@ def test_gradcheck_unrolled():
     assert torch.autograd.gradcheck(normals, (captures, emission), eps=1e-6, atol=1e-5)
 
 
+def test_geometry_gets_no_gradient():
+    """Points and lights are constants, as in solve_ps: lights that require grad got a partial,
+    wrong gradient through the lighting matrix (its p_k term only)."""
+    pixels, captures, emission = _sphere_captures(np.load("patterns/data/ddps/initial_mono_gradient.npy"))
+    points, lights = pixels.points.double().requires_grad_(), pixels.lights().double().requires_grad_()
+    normal, albedo = solve_ps_unrolled(captures, emission, points, lights, pixels.rig.falloff)
+    assert not normal.requires_grad and not albedo.requires_grad
+
+
 def test_degenerate_inputs_stay_finite():
     rig = load_rig()
     lights = rig.lights()
