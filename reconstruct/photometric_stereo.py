@@ -17,8 +17,9 @@ Algorithm (all pixels at once; ``reconstruct.reference`` is a plain per-pixel ve
 3. move to the new normal's own mask if that lowers the true residual (line search), repeat
    2-3 until the masks reproduce themselves; restart doubtful pixels from 12 other normals and keep
    the lowest residual (``reconstruct.shadow_search``).
-Saturated equations get zero weight. Quantities are rescaled per pixel so that every 3x3 system
-is of order one in any dtype.
+Saturated equations get zero weight; the condition number that flags ill-conditioned pixels
+leaves zero captures out (a shadow explains them as well as a superpixel on the tangent plane).
+Quantities are rescaled per pixel so that every 3x3 system is of order one in any dtype.
 
 Gradients (w.r.t. captures and emission; geometry and the shadow masks are constants) are exact
 implicit-function-theorem gradients of the converged fixed point a* = Phi(a*) of one alternation
@@ -47,7 +48,7 @@ import torch
 
 from capture_sim.errors import InputError, check_array, check_field_types, is_whole_number
 from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, finite_albedo, lighting_matrix
-from reconstruct.pixel_solve import CONDITION_CAP, Moments, alternate, implicit_step, normalised_moments, relative_residual, take_pixels
+from reconstruct.pixel_solve import CONDITION_CAP, Moments, alternate, implicit_step, normal_condition, normalised_moments, relative_residual, take_pixels
 from reconstruct.shadow_search import restarted_search
 
 FLAG_NAMES = ("dark", "saturated", "ill_conditioned", "back_facing", "bad_geometry", "not_converged", "poor_fit", "grazing")
@@ -185,7 +186,8 @@ class PSResult:
             flags say that the estimate is degraded, not meaningless (not-converged ones far from
             a fixed point carry no gradient, see ``solve_ps``).
         condition: (...) normal condition number (``pixel_solve.normal_condition``), in
-            [1, CONDITION_CAP].
+            [1, CONDITION_CAP], of the equations that captured light: zero captures are left out
+            of it (``PatternEvaluator.lit_condition``).
         residual: (...) RMS residual of the Lambertian fit relative to the RMS capture, in [0, 1],
             over the equations used (saturated captures are left out; 1 where none is left or no
             light was captured, and outside the mask of image solves) (``pixel_solve.
@@ -305,6 +307,30 @@ class PatternEvaluator:
             moments.write(start, stop, normalised_moments(vectors, captures, weight, scale), vectors)
         return moments
 
+    def lit_condition(self, normal, albedo, condition):
+        """Condition numbers (N,) of the normals (3, N) and albedo (3, N) of all N pixels, counting
+        only the equations that captured light (capture > 0).
+
+        A capture of zero (a clipped one, or below zero after dark-frame subtraction) is explained
+        as well by a shadow as by a lit superpixel on the tangent plane, so it bounds the normal
+        from one side only, and its share of the moments at such a kink is no information. Where
+        superpixels emit exactly nothing (off level 0 on a rig without backlight), a pixel that
+        two lit superpixels reach fits a whole family of normals exactly; counting its zero
+        captures, its condition looked like 4 (measured: a noise-free sphere under the four
+        corners of ``olat`` M = 4, errors up to 40 deg); without them it is infinite and the pixel
+        is flagged. Pixels without a zero capture keep ``condition`` (N,) (the moments of every
+        equation), with no extra work; dim but positive captures count as before.
+        """
+        unlit = (self.captures <= 0) & (self.equation_weight > 0)
+        index = torch.nonzero(unlit.any(dim=(0, 1))).squeeze(1)
+        if index.numel() == 0:
+            return condition
+        lit = PatternEvaluator(self.field, self.lighting, self.captures, self.equation_weight * ~unlit, self.capture_scale)
+        moments = lit.evaluate(index, normal[:, index])
+        condition = condition.clone()
+        condition[index] = torch.maximum(condition[index], normal_condition(normal[:, index], albedo[:, index], moments.moment))
+        return condition
+
 
 NEAR_FIXED_POINT = 0.2
 """Relative size of the implicit Newton step (of the albedo) up to which a not-converged pixel
@@ -330,6 +356,7 @@ def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, 
         initial_albedo = (captures.detach() / capture_scale).amax(dim=0).clamp_min(0)
         view = light_field.view.T.contiguous()
         state, condition = restarted_search(evaluator, fit, initial_albedo, view, config)
+        condition = evaluator.lit_condition(state.normal, state.albedo, condition)
 
     normal, albedo = state.normal, state.albedo
     if track_gradient:

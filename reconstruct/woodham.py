@@ -137,6 +137,8 @@ def _solve_block(evaluator, light_field: LightField, config, dark_and_saturated=
     count = light_field.num_pixels
     view = light_field.view.T.contiguous()
     state, condition = restarted_search(evaluator, fit, torch.ones((3, count), dtype=view.dtype), view, config)
+    if isinstance(evaluator, PatternEvaluator):  # OLAT stacks leave shadowed equations out of the moments already
+        condition = evaluator.lit_condition(state.normal, state.albedo, condition)
     dark, saturated = evaluator.capture_flags() if dark_and_saturated is None else dark_and_saturated
     albedo = state.albedo * (state.moments.capture_scale / state.moments.lighting_scale)
     flags = {"dark": dark, "saturated": saturated, "not_converged": ~state.converged}

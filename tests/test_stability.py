@@ -93,6 +93,28 @@ def test_single_colour_pattern_is_ill_conditioned(problem):
     assert result.flags["ill_conditioned"].all()
 
 
+def test_pixels_that_zero_captures_leave_underdetermined_are_ill_conditioned():
+    # Four corner superpixels, nothing else lit (off level 0, no backlight). A pixel that two
+    # corners reach fits a whole family of normals exactly: its zero captures bound the normal
+    # from one side only (a corner behind the tangent plane, or on it), yet counting them gave
+    # condition numbers near 4 and valid normals up to 40 deg off.
+    scene = sphere_scene(40, 48)
+    corners = torch.tensor([0, 15, 128, 143])
+    emission = torch.zeros(4, scene.lights.shape[0], 3, dtype=torch.float64)
+    emission[torch.arange(4), corners] = 1.0
+    inside = scene.mask.reshape(-1)
+    points, truth = scene.points.reshape(-1, 3)[inside], scene.normal.reshape(-1, 3)[inside]
+    radiance = torch.einsum("mkc,knc->mnc", emission, scene.olat.reshape(scene.olat.shape[0], -1, 3)[:, inside])
+    captures, emission = radiance * (0.9 / float(radiance.max())), emission * (0.9 / float(radiance.max()))
+    reached = (((scene.lights[corners][None] - points[:, None]) * truth[:, None]).sum(-1) > 0).sum(1)
+    assert (reached == 2).sum() >= 10 and (reached >= 3).sum() >= 100
+    for solver in (solve_ps, solve_woodham):
+        result = solver(captures, emission, points, scene.lights, Falloff())
+        assert result.flags["ill_conditioned"][reached == 2].all() and not result.valid[reached <= 2].any(), solver.__name__
+        error = angular_error_deg(result.normal, truth)
+        assert result.valid[reached >= 3].all() and float(error[reached >= 3].max()) < 0.1, solver.__name__
+
+
 def _grazing_plane(tilt_deg: float, sideways: tuple, patterns: str):
     """Points of a plane through (0, 0, 0.5) whose normal is tilted ``tilt_deg`` from the optical
     axis towards ``sideways`` (x, y), its true normal and noise-free captures."""
