@@ -15,20 +15,26 @@ import numpy as np
 from capture_sim.errors import InputError, warn_once
 
 
-def refuse_overwriting(outputs, inputs) -> None:
+def refuse_overwriting(outputs, inputs, folders=()) -> None:
     """Raise ``InputError`` if an output file would replace an input file or another output, if
-    an output path holds something other than a regular file (``check_replaceable``), or if no
-    file can be created in its folder: commands call this before their work, so that such an
-    output fails at once, not after it.
+    an output path holds something other than a regular file (``check_replaceable``), if it is
+    one of the command's output folders or would have to hold one, or if no file can be created
+    in its folder: commands call this before their work, so that such an output fails at once,
+    not after it.
 
     Args:
         outputs: (what, path or None) pairs of files a command will write.
         inputs: (what, path or None) pairs of files it reads (folders are ignored).
+        folders: (what, path or None) pairs of folders it writes into, created if missing (e.g.
+            ``--out`` of evaluate, ``--logdir``); files inside them are fine.
     """
     seen: dict = {}
     for what, path in inputs:
         if path is not None and Path(path).is_file():
             seen.setdefault(Path(path).resolve(), what)
+    places = [(what, Path(path), Path(path).resolve()) for what, path in folders if path is not None]
+    for what, folder, _ in places:
+        check_folder_place(folder, f"cannot write {what} {folder}")
     probed: set = set()
     for what, path in outputs:
         if path is None:
@@ -37,6 +43,11 @@ def refuse_overwriting(outputs, inputs) -> None:
         resolved = Path(path).resolve()
         if resolved in seen:
             raise InputError(f"{what} {path} is also the {seen[resolved]}: writing it would destroy that file")
+        for folder_what, folder, place in places:
+            if place == resolved:
+                raise InputError(f"{what} {path} is also the {folder_what} folder: give them different names")
+            if resolved in place.parents:
+                raise InputError(f"{what} {path} would have to be a folder to hold the {folder_what} folder {folder}: give them different names")
         seen[resolved] = what
         _check_writable(Path(path), probed)
 

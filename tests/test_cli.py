@@ -275,6 +275,20 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         (["scenes", "synth", "--out", str(tmp_path / "indexed"), "--size", "8x10"], "index.json: it exists and is not a regular file"),
         (["evaluate", "--patterns", "olat", "--scenes", str(tmp_path / "set")], f"a synthesised scene set: pass {tmp_path / 'set' / 'test'}"),
     ]
+    # A file output that is a folder output, or would have to hold one: refused before the work
+    # (it failed at the end, after all of it, with "it exists and is not a regular file").
+    learn = ["--steps", "1", "--scenes", str(scene_file)]
+    cases += [
+        (["train", *learn, "--out", str(tmp_path / "c1.npz"), "--logdir", str(tmp_path / "c1.npz")], "--out " + str(tmp_path / "c1.npz") + " is also the --logdir folder"),
+        (["train", *learn, "--out", str(tmp_path / "c2.npz"), "--logdir", str(tmp_path / "c2.ckpt.pt")], "checkpoint " + str(tmp_path / "c2.ckpt.pt") + " is also the --logdir folder"),
+        (["train", *learn, "--out", str(tmp_path / "c3.npz"), "--logdir", str(tmp_path / "c3.npz" / "logs")], "would have to be a folder to hold the --logdir folder"),
+        (["search", "--family", "mono_gradient", "--M", "2", "--maxeval", "2", "--scenes", str(scene_file), "--out", str(tmp_path / "c4.npz"),
+          "--logdir", str(tmp_path / "c4.trace.csv")], "is also the --logdir folder"),
+        (["evaluate", "--patterns", "olat", "--scenes", str(scene_file), "--json", str(tmp_path / "c5"), "--out", str(tmp_path / "c5")], "is also the --out folder"),
+        (["evaluate", "--patterns", "olat", "--scenes", str(scene_file), "--json", str(tmp_path / "c6"), "--out", str(tmp_path / "c6" / "maps")],
+         "would have to be a folder to hold the --out folder"),
+        (["invrender", "--scene", str(scene_file), "--json", str(tmp_path / "c7"), "--out", str(tmp_path / "c7")], "is also the --out folder"),
+    ]
     (tmp_path / "set" / "test").mkdir(parents=True)
     (tmp_path / "set" / "test" / scene_file.name).write_bytes(scene_file.read_bytes())
     # simulate into a folder where one of its outputs is a folder: refused before writing any.
@@ -294,6 +308,7 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
         err = capsys.readouterr().err.strip().splitlines()[-1]  # after any progress bar's line
         assert err.startswith("displex: error:") and message in err, (argv, err)
     assert not (tmp_path / "folder.ckpt.pt").exists()  # refused before learning wrote a checkpoint
+    assert not any((tmp_path / name).exists() for name in ("c1.npz", "c1.ckpt.pt", "c2.ckpt.pt", "c3.npz", "c4.trace.csv", "c4.trace.partial.csv", "c5", "c6", "c7"))
     assert sorted(path.name for path in (tmp_path / "sim").iterdir()) == ["contact_sheet.png"]
 
 

@@ -286,8 +286,9 @@ def _train(args) -> None:
     }
     config = load_config(TrainConfig, args.config, overrides, flags=_flag_names(overrides, num_patterns="--M"))
     _check_default_rig(config.rig, args.rig, [config.init if names_pattern_file(config.init) else None], [*config.scenes, *config.val_scenes])
-    refuse_overwriting(output_files(args.out), [("--init file", config.init), ("--config file", args.config),
-                                                *_scene_files(config.scenes, config.val_scenes)])
+    refuse_overwriting([*output_files(args.out), ("checkpoint", checkpoint_path(args.out))],
+                       [("--init file", config.init), ("--config file", args.config), *_scene_files(config.scenes, config.val_scenes)],
+                       folders=[("--logdir", args.logdir)])
     _refuse_out_among_scenes(args.out, config.scenes, config.val_scenes)
     result = train_patterns(config, args.out, logdir=args.logdir, checkpoint_mode="fresh" if args.fresh else "resume")
     last = f", validation MAE {result.val_history[-1][1]:.2f} deg" if result.val_history else " (not validated: pass --val-scenes)"
@@ -382,7 +383,7 @@ def _search(args) -> None:
     }
     config = load_config(SearchConfig, args.config, overrides, flags=_flag_names(overrides, num_patterns="--M"))
     _check_default_rig(config.rig, args.rig, [], config.scenes)
-    refuse_overwriting(output_files(args.out), [("--config file", args.config), *_scene_files(config.scenes)])
+    refuse_overwriting(output_files(args.out), [("--config file", args.config), *_scene_files(config.scenes)], folders=[("--logdir", args.logdir)])
     _refuse_out_among_scenes(args.out, config.scenes)
     summary = run_search(config, args.out, logdir=args.logdir)
     print(f"{summary['family']} M={summary['num_patterns']} {summary['algorithm']}: MAE {summary['start_mae']:.2f} "
@@ -431,7 +432,7 @@ def _invrender(args) -> None:
         check_output_folder(args.out, "invrender")
     outputs = [("--json", separate_json(args.json, args.out, "result.json")), *((f"--out file {name}", None if args.out is None else args.out / name) for name in OUTPUT_FILES)]
     refuse_overwriting(outputs, [("--scene", args.scene), ("--patterns file", None if args.patterns == "olat" else args.patterns),
-                                 ("--rig file", None if args.rig is None else rig_file(args.rig))])
+                                 ("--rig file", None if args.rig is None else rig_file(args.rig))], folders=[("--out", args.out)])
     args.rig = rig_for_inputs(args.rig, [args.patterns], [args.scene])
     changes = dict(scene=args.scene, patterns=args.patterns, basis=args.basis, noise=args.noise, seed=args.seed, rig=args.rig, json=args.json, out=args.out,
                    threads=args.torch_threads, exposure=args.exposure)  # already applied by _run; recorded in config.json

@@ -64,7 +64,7 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
     known_inputs = [("pattern file", None if config.patterns == "olat" else config.patterns), ("rig file", rig_file(config.rig))]
     # The outputs whose names do not depend on the scenes are checked before the scenes are read
     # (the default ones are synthesised, seconds here); the scenes' own maps are checked below.
-    refuse_overwriting([("--json", json_path), *_out_files(config.out, [])], known_inputs)
+    refuse_overwriting([("--json", json_path), *_out_files(config.out, [])], known_inputs, folders=[("--out", config.out)])
     scenes = resolve_scenes(config.scenes, "test", rig)
     for scene in scenes:  # a later scene's refusal must not wait for the earlier scenes' solves
         require_ground_truth(scene)
@@ -73,7 +73,8 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
     if config.out is not None:
         _refuse_clashing_outputs(files)
     # Every output is checked before the work: none may replace an input or another output.
-    refuse_overwriting([("--json", json_path), *_out_files(config.out, files)], [("scene file", file) for file in files] + known_inputs)
+    refuse_overwriting([("--json", json_path), *_out_files(config.out, files)], [("scene file", file) for file in files] + known_inputs,
+                       folders=[("--out", config.out)])
     with contextlib.ExitStack() as stack:
         # Files for --out are staged and land together at the end: a failure part-way (a bad
         # later scene, an unwritable --json) leaves no new maps beside an earlier run's results;
