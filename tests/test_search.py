@@ -204,7 +204,7 @@ def test_run_search_writes_patterns_trace_and_chart(scene_dir, tmp_path, algorit
     out = tmp_path / "best.npz"
     summary = run_search(config, out, logdir=tmp_path / "logs", progress=False)
     assert summary["best_mae"] <= summary["start_mae"]
-    assert 1 <= summary["evaluations"] <= 5
+    assert 1 <= summary["evaluations"] <= 5 and summary["seconds"] > 0
 
     rows = list(csv.DictReader((tmp_path / "best.trace.csv").read_text().splitlines()))
     assert len(rows) == summary["evaluations"]
@@ -225,6 +225,9 @@ def test_run_search_writes_patterns_trace_and_chart(scene_dir, tmp_path, algorit
     objective = PatternObjective("tri_complementary", 2, prepare_scenes([scene_dir], "train", rig, SIZE, 0), rig.rows, rig.cols, pixels_per_scene=200)
     with torch.no_grad():
         assert float(objective.value(torch.as_tensor(patterns))) == pytest.approx(meta["best_mae"], abs=1e-2)
+    # The same search again writes the same bytes (the run time is returned, not kept in the file).
+    run_search(config, tmp_path / "again.npz", progress=False)
+    assert (tmp_path / "again.npz").read_bytes() == out.read_bytes()
 
 
 def test_every_algorithm_is_known_to_nlopt():

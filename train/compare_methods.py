@@ -182,15 +182,16 @@ def searched_method(config: CompareConfig, run: SearchRun, pattern_dir: Path, pr
     if existing is None:
         _record_path(path).unlink(missing_ok=True)
         meta = run_search(search_config, path, logdir=None if logdir is None else logdir / run.name, progress=progress, own_logdir=True)
-        patterns = load_patterns(path)[0]
-        write_json(_record_path(path), {"seconds": meta["seconds"], "input_files": input_fingerprints(search_config)})
+        patterns, seconds = load_patterns(path)[0], meta["seconds"]
+        write_json(_record_path(path), {"seconds": seconds, "input_files": input_fingerprints(search_config)})
     else:
         meta, patterns = existing["meta"], existing["patterns"]
+        seconds = _run_record(path).get("seconds")
     info = {key: meta[key] for key in ("start_mae", "best_mae", "evaluations", "stop_reason", "sharpness")}
     info["parameters"] = len(meta.get("parameter_names", ()))
     info["trace_png"] = str(trace_chart_path(path))
     return Method(run.name, "search", f"search:{run.family}:{run.algorithm}", f"{run.family} + {run.algorithm}", run.num_patterns,
-                  patterns, str(path), meta["seconds"], info=info)
+                  patterns, str(path), seconds, info=info)
 
 
 def external_methods(config: CompareConfig, rig) -> tuple[list[Method], list[dict]]:

@@ -550,7 +550,6 @@ def _search_meta(config: SearchConfig, rig, names: list[str], start, found, scen
         "best_mae": found.best_value,
         "evaluations": len(found.history),
         "stop_reason": found.stop_reason,
-        "seconds": found.seconds,
         "sharpness": config.sharpness,
         "start": config.start,
         "objective": (
@@ -585,7 +584,8 @@ def run_search(config: SearchConfig, out: Path, logdir: Path | None = None, prog
             sharing a folder keep theirs.
 
     Returns:
-        The pattern file's meta dict plus ``pattern_file``, ``trace_csv`` and ``trace_png`` paths.
+        The pattern file's meta dict plus the run's wall ``seconds`` and the ``pattern_file``,
+        ``trace_csv`` and ``trace_png`` paths.
     """
     # A second search on the same output would share its partial trace and replace its result.
     with exclusive_output(out, "search"):
@@ -664,4 +664,5 @@ def _search(config: SearchConfig, out: Path, logdir: Path | None, progress: bool
         if writer is not None:
             writer.close()
     _remove_file(partial)
-    return {**meta, "pattern_file": str(out), "trace_csv": str(trace), "trace_png": str(chart)}
+    # The run time is returned, not kept in the file: a search repeated with the same seed writes the same bytes.
+    return {**meta, "seconds": found.seconds, "pattern_file": str(out), "trace_csv": str(trace), "trace_png": str(chart)}
