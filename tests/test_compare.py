@@ -1031,6 +1031,9 @@ def test_report_reader_fixes():
     assert noise_verdict(0.995, 1.005) == "learned patterns are no better than the best heuristic at either end"
     assert noise_verdict(0.995, 0.9) == "learned patterns overtake the best heuristic"
     assert [_seconds(v) for v in (0.0044, 0.009, 0.15, 1.234, None)] == ["0.0044", "0.0090", "0.15", "1.2", "-"]
+    from train.report import _fmt
+
+    assert [_fmt(-0.29, 0), _fmt(-0.004), _fmt(-0.6, 0), _fmt(None)] == ["0", "0.00", "-1", "-"]  # no '-0' in a table
     assert _timing_text({"config": {"eval_workers": 2}, "threads": 2}) == (
         ", single-threaded in up to 2 worker processes sharing the machine (on 2 threads when one set is evaluated)")
     results["methods"][2]["info"] = {"same_patterns_as": results["methods"][1]["id"]}

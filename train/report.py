@@ -531,7 +531,8 @@ def _fmt(value, digits: int = 2) -> str:
         return "-"
     if isinstance(value, float) and not math.isfinite(value):
         return "-"
-    return f"{value:.{digits}f}"
+    text = f"{value:.{digits}f}"
+    return text.lstrip("-") if float(text) == 0 else text  # -0.3 % of specular share printed as '-0'
 
 
 def _seconds(value) -> str:
