@@ -115,6 +115,29 @@ def test_pixels_that_zero_captures_leave_underdetermined_are_ill_conditioned():
         assert result.valid[reached >= 3].all() and float(error[reached >= 3].max()) < 0.1, solver.__name__
 
 
+def test_zero_captures_of_a_backlit_display_still_count(monkeypatch):
+    # Every superpixel emits (backlight): noise clips dim equations to 0 at kinks, and leaving
+    # them out of the condition flagged good estimates (7 of the blob's pixels here, 5 deg median
+    # error on the demo's scenes); the flags stay those of every equation.
+    from capture_sim.rig import load_rig
+    from patterns.families import make_patterns
+    from reconstruct.photometric_stereo import PatternEvaluator
+    from train.capture import capture_scene
+    from train.scene_pixels import scene_pixels
+    from train.scene_sets import default_split
+
+    rig = load_rig()
+    blob = next(scene for scene in default_split("test", rig, (48, 58), 0) if scene.name.endswith("blob-regions"))
+    pixels = scene_pixels(blob, rig, require_normals=True)
+    with torch.no_grad():
+        capture = capture_scene(pixels, make_patterns("tri_complementary", 2).float(), 1.0, "auto", torch.Generator().manual_seed(0))
+    assert (capture.captures == 0).any()
+    result = solve_ps(capture.captures, capture.emission, pixels.points, pixels.lights(), rig.falloff)
+    monkeypatch.setattr(PatternEvaluator, "lit_condition", lambda self, normal, albedo, condition, kink_cos: condition)
+    every_equation = solve_ps(capture.captures, capture.emission, pixels.points, pixels.lights(), rig.falloff)
+    assert torch.equal(result.condition, every_equation.condition) and torch.equal(result.valid, every_equation.valid)
+
+
 def _grazing_plane(tilt_deg: float, sideways: tuple, patterns: str):
     """Points of a plane through (0, 0, 0.5) whose normal is tilted ``tilt_deg`` from the optical
     axis towards ``sideways`` (x, y), its true normal and noise-free captures."""
