@@ -53,8 +53,9 @@ def _path(text: str) -> Path:
 
 
 def _file_output(text: str) -> Path:
-    """A file to write: ``_path``, and one written as a folder ('x/', 'x/.', '.', 'x/..') is refused
-    here, where the text still says so (``Path`` drops a trailing '/' and '.': 'x/' became a file x)."""
+    """A file to write: ``_path``, and one written as a folder ('x/', 'x/.', '.', 'x/..', or with
+    '\\' on Windows) is refused here, where the text still says so (``Path`` drops a trailing '/'
+    and '.': 'x/' became a file x)."""
     path = _path(text)
     separators = [separator for separator in (os.sep, os.altsep) if separator]  # '\\' and '/' on Windows
     if text in (".", "..") or text.endswith(tuple(separator + tail for separator in separators for tail in ("", ".", ".."))):
@@ -286,9 +287,8 @@ def _train(args) -> None:
     }
     config = load_config(TrainConfig, args.config, overrides, flags=_flag_names(overrides, num_patterns="--M"))
     _check_default_rig(config.rig, args.rig, [config.init if names_pattern_file(config.init) else None], [*config.scenes, *config.val_scenes])
-    refuse_overwriting([*output_files(args.out), ("checkpoint", checkpoint_path(args.out))],
-                       [("--init file", config.init), ("--config file", args.config), *_scene_files(config.scenes, config.val_scenes)],
-                       folders=[("--logdir", args.logdir)])
+    refuse_overwriting(output_files(args.out), [("--init file", config.init), ("--config file", args.config),
+                                                *_scene_files(config.scenes, config.val_scenes)])
     _refuse_out_among_scenes(args.out, config.scenes, config.val_scenes)
     result = train_patterns(config, args.out, logdir=args.logdir, checkpoint_mode="fresh" if args.fresh else "resume")
     last = f", validation MAE {result.val_history[-1][1]:.2f} deg" if result.val_history else " (not validated: pass --val-scenes)"
@@ -383,7 +383,7 @@ def _search(args) -> None:
     }
     config = load_config(SearchConfig, args.config, overrides, flags=_flag_names(overrides, num_patterns="--M"))
     _check_default_rig(config.rig, args.rig, [], config.scenes)
-    refuse_overwriting(output_files(args.out), [("--config file", args.config), *_scene_files(config.scenes)], folders=[("--logdir", args.logdir)])
+    refuse_overwriting(output_files(args.out), [("--config file", args.config), *_scene_files(config.scenes)])
     _refuse_out_among_scenes(args.out, config.scenes)
     summary = run_search(config, args.out, logdir=args.logdir)
     print(f"{summary['family']} M={summary['num_patterns']} {summary['algorithm']}: MAE {summary['start_mae']:.2f} "

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import atomic_path, check_folder_place, exclusive_output, staged_files, write_json
+from capture_sim.atomic import atomic_path, check_folder_place, exclusive_output, refuse_overwriting, staged_files, write_json
 from capture_sim.errors import InputError, check_seed, one_line
 from capture_sim.rig import DEFAULT_RIG, check_noise_scale, load_rig, rig_file, rig_source
 from capture_sim.scene import file_fingerprints, scene_paths
@@ -425,7 +425,7 @@ def train_patterns(config: TrainConfig, out: Path, logdir: Path | None = None, p
 
 def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, checkpoint_mode: str, own_logdir: bool) -> TrainResult:
     began = time.perf_counter()
-    check_logdir(logdir)  # before the scenes, which can take a while
+    check_logdir(logdir, [*output_files(out), ("checkpoint", checkpoint_path(out))])  # before the scenes, which can take a while
     rig = load_rig(config.rig)
     logits = patterns_to_logits(initial_patterns(config, rig.rows, rig.cols)).detach().requires_grad_()
     optimiser = torch.optim.Adam([logits], lr=config.learning_rate)
@@ -547,14 +547,17 @@ def _wait_for_a_later_event_file_name(folder: Path) -> None:
         time.sleep(1.0 - now % 1.0 + 0.01)
 
 
-def check_logdir(logdir: Path | None) -> str | None:
+def check_logdir(logdir: Path | None, outputs=()) -> str | None:
     """Create the TensorBoard folder ``logdir`` and check that it takes files, before any work
-    (``InputError`` otherwise); its name for the writer, or None without one."""
+    (``InputError`` otherwise, also if one of the run's ``outputs``, (what, path) pairs of the
+    files it writes, is that folder or would have to hold it); its name for the writer, or None
+    without one."""
     if logdir is None:
         return None
     name = tensorboard_folder_name(logdir, "--logdir")
     if Path(logdir).exists() and not Path(logdir).is_dir():
         raise InputError(f"--logdir {logdir} is a file, not a folder")
+    refuse_overwriting(outputs, [], folders=[("--logdir", logdir)])  # an output there would fail after the work
     check_folder_place(Path(logdir), f"--logdir {logdir} is not writable")  # a broken link on the way says so
     # The writer writes from a background thread, where a failure would print a thread traceback:
     # try the folder here first.

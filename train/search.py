@@ -608,7 +608,7 @@ def check_search_setup(config: SearchConfig, rig) -> np.ndarray:
 def _search(config: SearchConfig, out: Path, logdir: Path | None, progress: bool, own_logdir: bool) -> dict:
     from train.figures import save_figure
 
-    check_logdir(logdir)  # before the scenes, which can take a while
+    check_logdir(logdir, output_files(out))  # before the scenes, which can take a while
     rig = load_rig(config.rig)
     start = check_search_setup(config, rig)  # before the scenes, which can take minutes
     family = get_family(config.family)
