@@ -199,7 +199,8 @@ class BasisModel(torch.nn.Module):
         return self.log_diffuse.exp()
 
     def specular(self) -> torch.Tensor | None:
-        """(J, 3) specular albedo per basis BRDF in the same units, or None (Lambertian fit)."""
+        """(J,) specular albedo per basis BRDF (grey: one value for all channels) in the same units, or
+        None (Lambertian fit)."""
         return None if self.log_specular is None else self.log_specular.exp()
 
     def roughness(self) -> torch.Tensor:
