@@ -510,6 +510,18 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     with pytest.raises(InputError, match=r"\[\[external\]\] mine: .* lies in .*patterns, whose files compare rewrites"):
         run_compare(inside, tmp_path, progress=False)
     assert {path: path.read_bytes() for path in (tmp_path / "patterns").glob("*.npz")} == before
+    # So would a learning run's init pattern file there (it was overwritten: an input destroyed),
+    # and a folder where a report file goes failed only after the work: both refused before it.
+    init = tiny_config(scenes, learned={"steps": 2, "val_every": 0, "pixels_per_scene": 64,
+                                        "init": str(tmp_path / "patterns" / "heuristic_tri_complementary_M2.npz")})
+    with monkeypatch.context() as patch:
+        patch.setattr("train.compare.collect_methods", lambda *args, **kwargs: pytest.fail("the work started"))
+        with pytest.raises(InputError, match=r"learned init pattern file .* lies in .*patterns, whose files compare rewrites"):
+            run_compare(init, tmp_path, progress=False)
+        (tmp_path / "blocked" / "report.md").mkdir(parents=True)
+        with pytest.raises(InputError, match="report.md: it exists and is not a regular file"):
+            run_compare(config, tmp_path / "blocked", progress=False)
+    assert {path: path.read_bytes() for path in (tmp_path / "patterns").glob("*.npz")} == before
     # A stop between a learning run's pattern file and its run record leaves a run to finish
     # again (from its checkpoint, to the same patterns), not a refusal blaming the rig file.
     learned_file = tmp_path / "patterns" / "learned_M2_seed0.npz"

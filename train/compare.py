@@ -40,7 +40,7 @@ from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, load_rig
 from capture_sim.scene import scene_paths
 from capture_sim.synth import GENERATOR
-from patterns.io import save_patterns
+from patterns.io import names_pattern_file, save_patterns
 from train.capture import scene_exposure
 from train.compare_config import CompareConfig, compare_config_to_dict, load_compare_config, rig_exposure_ms
 from train.compare_methods import Method, collect_methods
@@ -354,16 +354,22 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     began = time.perf_counter()
     # A file where the folder goes, or a folder nothing can be written into: refused now, not
     # when the results are written after the work.
-    refuse_overwriting([("results", out_dir / "results.json")], [])
-    if config.learned_pattern_counts() or config.rerender_counts or config.search:  # these log under tensorboard/
-        tensorboard_folder_name(out_dir, "compare output folder")
     pattern_dir = out_dir / "patterns"
+    logs = bool(config.learned_pattern_counts() or config.rerender_counts or config.search)  # these log under tensorboard/
+    fixed = [("results", out_dir / "results.json"), ("report", out_dir / "report.md"), ("config record", out_dir / "config.json"),
+             *(("chart", out_dir / name) for name in CHARTS.values())]
+    refuse_overwriting(fixed, [], folders=[("patterns folder", pattern_dir), ("tensorboard folder", out_dir / "tensorboard" if logs else None)])
+    if logs:
+        tensorboard_folder_name(out_dir, "compare output folder")
     if (pattern_dir / "__init__.py").exists():  # e.g. out = "." in the repository root
         raise InputError(f"compare output folder {out_dir} holds a Python package patterns/ (the source tree?), "
                          "into which compare would write its pattern files; choose another folder")
-    for item in config.external:
-        if Path(item.path).resolve().is_relative_to(pattern_dir.resolve()):
-            raise InputError(f"[[external]] {item.name}: {item.path} lies in {pattern_dir}, whose files compare rewrites; "
+    pattern_inputs = [(f"[[external]] {item.name}:", item.path) for item in config.external]
+    pattern_inputs += [("learned init pattern file", table["init"]) for table in (config.learned, *config.learned_at.values())
+                       if names_pattern_file(table.get("init"))]
+    for what, path in pattern_inputs:
+        if Path(path).resolve().is_relative_to(pattern_dir.resolve()):
+            raise InputError(f"{what} {path} lies in {pattern_dir}, whose files compare rewrites; "
                              "copy it elsewhere or choose another output folder")
     trained_test_files = _check_scene_lists(config)
     # Scenes made for another rig than the config's default need that rig; external pattern sets
