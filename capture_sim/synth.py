@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import check_replaceable, staged_files, write_json
+from capture_sim.atomic import refuse_overwriting, staged_files, write_json
 from capture_sim.errors import MAX_SEED, DisplexWarning, InputError, is_whole_number
 from capture_sim.materials import MATERIALS, make_material
 from capture_sim.render import render_olat
@@ -298,7 +298,9 @@ def write_scene_set(out_dir: str | Path, rig: Rig, height: int | None = None, wi
         "splits": {split: [] for split in default_scene_specs(seed)},
     }
     index_path = out_dir / "index.json"
-    check_replaceable(index_path)  # a folder in its place: one clear line before the work
+    # A folder where a file goes, or a file where a split's folder goes: one clear line before the work.
+    planned = [("scene file", out_dir / split / f"{spec.name}.npz") for split, specs in default_scene_specs(seed).items() for spec in specs]
+    refuse_overwriting([("index", index_path), *planned], [])
     # The long synthesis writes into a staging folder: interrupted, it leaves an earlier set in
     # ``out_dir`` as it was. The index goes last (and the earlier one first), so that no index ever
     # stands over a mixture of two sets (``displex demo`` reuses a folder whose index matches).

@@ -376,6 +376,20 @@ def test_interrupted_scene_set_leaves_the_earlier_set_intact(rig, tmp_path, monk
     assert all((out / entry["file"]).is_file() for split in index["splits"].values() for entry in split)
 
 
+def test_a_blocked_scene_path_is_refused_before_the_synthesis(rig, tmp_path, monkeypatch):
+    """A file where a split's folder goes, or a folder where a scene file goes, failed only after
+    every scene was synthesised."""
+    monkeypatch.setitem(write_scene_set.__globals__, "_synthesised", lambda *args: pytest.fail("the synthesis started"))
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "test").write_text("")
+    with pytest.raises(InputError, match="a/test is a file, not a folder"):
+        write_scene_set(tmp_path / "a", rig, height=12, width=14, seed=0, progress=False)
+    name = default_scene_specs(0)["train"][0].name
+    (tmp_path / "b" / "train" / f"{name}.npz").mkdir(parents=True)
+    with pytest.raises(InputError, match=f"{name}.npz: it exists and is not a regular file"):
+        write_scene_set(tmp_path / "b", rig, height=12, width=14, seed=0, progress=False)
+
+
 def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tmp_path):
     import dataclasses
     import json
