@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capture_sim.atomic import staged_files, write_bytes, write_json
+from capture_sim.atomic import check_folder_place, check_replaceable, staged_files, write_bytes, write_json
 from capture_sim.errors import InputError, check_array, is_whole_number
 from capture_sim.png import encode_png, png_header, read_png
 from capture_sim.rig import Rig, panel_size
@@ -172,6 +172,9 @@ def export_frames(
         raise InputError(f"{out_dir} holds frame files (pattern_*.png, olat_*.png, contact_sheet.png, ...) but no {MANIFEST_NAME}: "
                          "not an export folder; choose another folder or remove them")
 
+    check_folder_place(out_dir, f"cannot write into {out_dir}")
+    for path in (marker, manifest_path, out_dir / CONTACT_SHEET_NAME):  # a folder there fails now, not after the frames
+        check_replaceable(path)
     # Everything is written into a staging folder first and moves in at the end (the manifest
     # last): an export that fails or is interrupted leaves the earlier export as it was.
     # The earlier export's frames that this one does not replace go before its manifest lands.

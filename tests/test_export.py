@@ -260,7 +260,7 @@ def test_reexport_removes_stale_frames_and_bad_inputs_are_refused(tmp_path, smal
             import_frames(out)
 
 
-def test_export_keeps_frame_files_it_did_not_write(tmp_path, small_rig):
+def test_export_keeps_frame_files_it_did_not_write(tmp_path, small_rig, monkeypatch):
     from patterns.export import EXPORT_MARKER
 
     for name in ("olat_000.png", "contact_sheet.png"):  # either marks a folder as the user's
@@ -306,6 +306,13 @@ def test_export_keeps_frame_files_it_did_not_write(tmp_path, small_rig):
     with pytest.raises(InputError, match="pattern_001.png: it exists and is not a regular file"):
         export_frames(_patterns(small_rig, 3), small_rig, interrupted)
     assert {path.name: path.read_bytes() for path in interrupted.iterdir() if path.is_file()} == before
+    (interrupted / "pattern_001.png").rmdir()
+    (interrupted / "contact_sheet.png").unlink()
+    (interrupted / "contact_sheet.png").mkdir()  # refused before the frames are rendered, not after
+    with monkeypatch.context() as patch:
+        patch.setattr("patterns.export._write_export", lambda *args, **kwargs: pytest.fail("the frames were rendered"))
+        with pytest.raises(InputError, match="contact_sheet.png: it exists and is not a regular file"):
+            export_frames(_patterns(small_rig, 3), small_rig, interrupted)
     with pytest.raises(InputError, match="cannot write into .*black.png/inside: .*black.png is a file, not a folder"):
         export_frames(_patterns(small_rig, 1), small_rig, theirs / "black.png" / "inside")
 
