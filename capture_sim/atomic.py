@@ -32,9 +32,10 @@ def refuse_overwriting(outputs, inputs, folders=()) -> None:
     for what, path in inputs:
         if path is not None and Path(path).is_file():
             seen.setdefault(Path(path).resolve(), what)
-    places = [(what, Path(path), Path(path).resolve()) for what, path in folders if path is not None]
-    for what, folder, _ in places:
-        check_folder_place(folder, f"cannot write {what} {folder}")
+    for what, folder in folders:
+        if folder is not None:
+            check_folder_place(Path(folder), f"cannot write {what} {folder}")
+    refuse_folder_clashes(outputs, folders)
     probed: set = set()
     for what, path in outputs:
         if path is None:
@@ -43,13 +44,23 @@ def refuse_overwriting(outputs, inputs, folders=()) -> None:
         resolved = Path(path).resolve()
         if resolved in seen:
             raise InputError(f"{what} {path} is also the {seen[resolved]}: writing it would destroy that file")
+        seen[resolved] = what
+        _check_writable(Path(path), probed)
+
+
+def refuse_folder_clashes(outputs, folders) -> None:
+    """Raise ``InputError`` if an output file (``outputs``: (what, path or None) pairs) is one of
+    the output folders (``folders``: the same pairs) or would have to hold one."""
+    places = [(what, folder, Path(folder).resolve()) for what, folder in folders if folder is not None]
+    for what, path in outputs:
+        if path is None:
+            continue
+        resolved = Path(path).resolve()
         for folder_what, folder, place in places:
             if place == resolved:
                 raise InputError(f"{what} {path} is also the {folder_what} folder: give them different names")
             if resolved in place.parents:
                 raise InputError(f"{what} {path} would have to be a folder to hold the {folder_what} folder {folder}: give them different names")
-        seen[resolved] = what
-        _check_writable(Path(path), probed)
 
 
 def _check_writable(path: Path, probed: set) -> None:

@@ -308,12 +308,12 @@ class PatternEvaluator:
             moments.write(start, stop, normalised_moments(vectors, captures, weight, scale), vectors)
         return moments
 
-    def lit_condition(self, normal, albedo, condition, kink_cos: float):
+    def lit_condition(self, normal, albedo, condition, kink_tolerance_deg: float):
         """Condition numbers (N,) of the normals (3, N) and albedo (3, N) of all N pixels without
         the equations of patterns that leave superpixels dark where they sit at a kink: a zero
         capture (clipped, or below zero after dark-frame subtraction) whose lighting vector lies
-        within ``kink_cos`` (a cosine) of the tangent plane, under a pattern and channel whose
-        emission is exactly 0 on some superpixel.
+        within ``kink_tolerance_deg`` (degrees) of the tangent plane, under a pattern and channel
+        whose emission is exactly 0 on some superpixel.
 
         Such a capture is explained as well by the lit superpixels falling behind the tangent
         plane as by their lying on it: it bounds the normal from one side only. With exact zeros
@@ -334,10 +334,10 @@ class PatternEvaluator:
         index = torch.nonzero(zero.any(dim=(0, 1))).squeeze(1)
         if index.numel() == 0:
             return condition
-        condition = condition.clone()
-        for start, stop, vectors in self.field.vector_blocks(index, normal[:, index], self.lighting):
-            pixels = index[start:stop]
-            pixel_normal = normal[:, pixels]
+        kink_cos = math.sin(math.radians(kink_tolerance_deg))  # cosine of b and n at the kink tolerance
+        condition, normals = condition.clone(), normal[:, index]
+        for start, stop, vectors in self.field.vector_blocks(index, normals, self.lighting):
+            pixels, pixel_normal = index[start:stop], normals[:, start:stop]
             facing = (vectors * pixel_normal[None, None]).sum(2)  # b . n: (M, 3, n)
             kink = take_pixels(zero, pixels) & (facing <= kink_cos * vectors.norm(dim=2))
             weight = take_pixels(self.equation_weight, pixels) * ~kink
@@ -369,7 +369,7 @@ def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, 
         initial_albedo = (captures.detach() / capture_scale).amax(dim=0).clamp_min(0)
         view = light_field.view.T.contiguous()
         state, condition = restarted_search(evaluator, fit, initial_albedo, view, config)
-        condition = evaluator.lit_condition(state.normal, state.albedo, condition, math.sin(math.radians(config.kink_tolerance_deg)))
+        condition = evaluator.lit_condition(state.normal, state.albedo, condition, config.kink_tolerance_deg)
 
     normal, albedo = state.normal, state.albedo
     if track_gradient:

@@ -163,9 +163,10 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
 
     Returns:
         normal (N, 3) unit normals facing the camera, albedo (N, 3) >= 0; finite, differentiable
-        in ``captures`` and ``emission`` (no gradient flows to points or lights). As in ``solve_ps``, the albedo's gradient in the
-        emission grows as 1 / (emission peak)^2 and overflows for tiny emission (float32 at a
-        peak of about 1e-19, float64 below about 1e-154): give emission in units near 1.
+        in ``captures`` and ``emission`` (no gradient flows to points or lights). As in
+        ``solve_ps``, the albedo's gradient in the emission grows as 1 / (emission peak)^2 and
+        overflows for tiny emission (float32 at a peak of about 1e-19, float64 below about
+        1e-154): give emission in units near 1.
     """
     check_array("captures", captures, ("M", "N", 3))
     check_array("lights", lights, ("K", 3))

@@ -20,7 +20,6 @@ without gradients.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -139,7 +138,7 @@ def _solve_block(evaluator, light_field: LightField, config, dark_and_saturated=
     view = light_field.view.T.contiguous()
     state, condition = restarted_search(evaluator, fit, torch.ones((3, count), dtype=view.dtype), view, config)
     if isinstance(evaluator, PatternEvaluator):  # OLAT stacks leave shadowed equations out of the moments already
-        condition = evaluator.lit_condition(state.normal, state.albedo, condition, math.sin(math.radians(config.kink_tolerance_deg)))
+        condition = evaluator.lit_condition(state.normal, state.albedo, condition, config.kink_tolerance_deg)
     dark, saturated = evaluator.capture_flags() if dark_and_saturated is None else dark_and_saturated
     albedo = state.albedo * (state.moments.capture_scale / state.moments.lighting_scale)
     flags = {"dark": dark, "saturated": saturated, "not_converged": ~state.converged}

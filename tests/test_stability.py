@@ -133,7 +133,7 @@ def test_zero_captures_of_a_backlit_display_still_count(monkeypatch):
         capture = capture_scene(pixels, make_patterns("tri_complementary", 2).float(), 1.0, "auto", torch.Generator().manual_seed(0))
     assert (capture.captures == 0).any()
     result = solve_ps(capture.captures, capture.emission, pixels.points, pixels.lights(), rig.falloff)
-    monkeypatch.setattr(PatternEvaluator, "lit_condition", lambda self, normal, albedo, condition, kink_cos: condition)
+    monkeypatch.setattr(PatternEvaluator, "lit_condition", lambda self, normal, albedo, condition, kink_tolerance_deg: condition)
     every_equation = solve_ps(capture.captures, capture.emission, pixels.points, pixels.lights(), rig.falloff)
     assert torch.equal(result.condition, every_equation.condition) and torch.equal(result.valid, every_equation.valid)
 

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from capture_sim.atomic import atomic_path, check_folder_place, exclusive_output, refuse_overwriting, staged_files, write_json
+from capture_sim.atomic import atomic_path, check_folder_place, exclusive_output, refuse_folder_clashes, staged_files, write_json
 from capture_sim.errors import InputError, check_seed, one_line
 from capture_sim.rig import DEFAULT_RIG, check_noise_scale, load_rig, rig_file, rig_source
 from capture_sim.scene import file_fingerprints, scene_paths
@@ -557,7 +557,7 @@ def check_logdir(logdir: Path | None, outputs=()) -> str | None:
     name = tensorboard_folder_name(logdir, "--logdir")
     if Path(logdir).exists() and not Path(logdir).is_dir():
         raise InputError(f"--logdir {logdir} is a file, not a folder")
-    refuse_overwriting(outputs, [], folders=[("--logdir", logdir)])  # an output there would fail after the work
+    refuse_folder_clashes(outputs, [("--logdir", logdir)])  # an output there would fail after the work
     check_folder_place(Path(logdir), f"--logdir {logdir} is not writable")  # a broken link on the way says so
     # The writer writes from a background thread, where a failure would print a thread traceback:
     # try the folder here first.
