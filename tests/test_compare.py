@@ -27,7 +27,9 @@ from train.compare_config import (
     rig_exposure_ms,
 )
 from train.compare_methods import Method, collect_methods, external_methods
-from train.report import CHARTS, _seconds, aggregate_rows, pivot_cell, summary_tables
+from train.report import _seconds, pivot_cell
+from train.report_charts import CHARTS
+from train.report_rows import aggregate_rows, summary_tables
 
 SIZE = (24, 29)
 REPO = repository_root(Path(__file__).resolve().parent.parent / "configs" / "compare" / "demo.toml")
@@ -78,7 +80,7 @@ def test_config_out_is_relative_to_the_repository_root_like_its_other_paths(scen
 
 
 def test_best_heuristic_is_never_a_method_that_reconstructed_nothing():
-    from train.report import learned_against_best
+    from train.report_rows import learned_against_best
 
     rows = [{"kind": "learned", "M": 2, "mae": 30.0, "invalid_fraction": 0.5, "series": "learned", "label": "learned"},
             {"kind": "heuristic", "M": 2, "mae": 28.0, "invalid_fraction": 1.0, "series": "mono_gradient", "label": "mono_gradient"},
@@ -768,7 +770,7 @@ def test_relative_learned_init_file_resolves_against_the_repository(scenes):
 
 def test_cost_chart_labels_its_axis_when_every_cost_is_below_a_second():
     """A log axis inside one decade has no major tick: its minor ticks carry the numbers."""
-    from train.report import chart_mae_vs_cost
+    from train.report_charts import chart_mae_vs_cost
 
     rows = aggregate_rows(fake_results(), 0.5)
     for row, seconds in zip(rows, (0.15, 0.23, 0.4, 0.6, 0.86)):
@@ -784,7 +786,7 @@ def test_cost_chart_labels_its_axis_when_every_cost_is_below_a_second():
 
 def test_cost_chart_crosses_out_all_invalid_methods_and_merges_coincident_labels():
     """A method whose every pixel is invalid gets a labelled cross; methods on one point share one "M=" label."""
-    from train.report import ALL_INVALID_LABEL, chart_mae_vs_cost
+    from train.report_charts import ALL_INVALID_LABEL, chart_mae_vs_cost
 
     rows = aggregate_rows(fake_results(), 0.5)
     rows.append(dict(next(row for row in rows if row["series"] == "s"), series="s2", label="s2"))  # the search's twin
@@ -802,7 +804,7 @@ def test_cost_chart_crosses_out_all_invalid_methods_and_merges_coincident_labels
 def test_mae_chart_close_up_spans_the_best_methods_and_leaves_out_all_invalid_ones():
     """The close-up panel runs from just below the lowest MAE to 1.4 x the worst per-M best, with
     the OLAT reference line when near; an all-invalid row (MAE of the placeholder) does not stretch it."""
-    from train.report import chart_mae_vs_patterns, close_up_limits
+    from train.report_charts import chart_mae_vs_patterns, close_up_limits
 
     def row(kind, count, mae, invalid=0.0):
         return {"kind": kind, "series": f"{kind}{count}{mae}", "label": kind, "M": count, "mae": mae, "mae_std": 0.0, "invalid_fraction": invalid}
@@ -867,7 +869,7 @@ def test_external_and_searched_sets_never_share_a_style_in_one_chart():
     """Styles used to come from a hash of the name: 'trigrad_copy' and 'ddps_M4' were both brown squares."""
     from matplotlib.colors import to_hex
 
-    from train.report import chart_mae_vs_cost
+    from train.report_charts import chart_mae_vs_cost
 
     rows = aggregate_rows(fake_results(), 0.5)
     template = next(row for row in rows if row["series"] == "a")
@@ -901,7 +903,7 @@ def test_report_names_externals_the_reference_flags_and_the_training_noise():
 
 def test_cost_chart_heuristic_markers_grow_with_M():
     """Heuristic points carry no M label (they would pile up): their size says M, the caption says so."""
-    from train.report import HEURISTIC_MARKER_SIZES, chart_mae_vs_cost
+    from train.report_charts import HEURISTIC_MARKER_SIZES, chart_mae_vs_cost
 
     rows = aggregate_rows(fake_results(), 0.5)
     rows.append(dict(next(row for row in rows if row["series"] == "a"), M=4, mae=8.0))

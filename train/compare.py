@@ -12,7 +12,7 @@ without their specular stacks (``specular_free_check``): the difference is what 
 reflection costs the Lambertian reconstructor.
 Learning and search use the training scenes only; every number in the report comes from the
 test scenes. Outputs: ``results.json`` (every number and the resolved config), ``report.md`` and
-charts (``train.report``), and the learned / searched / heuristic pattern files in ``patterns/``.
+charts (``train.report``, ``train.report_charts``), and the learned / searched / heuristic pattern files in ``patterns/``.
 A rerun with the same out folder reuses learned and searched pattern files whose config matches.
 The settings are ``train.compare_config``'s; the pattern sets are collected (learned, searched,
 reused) by ``train.compare_methods``; this module measures them and writes the outputs.
@@ -348,7 +348,9 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
         scene files that learning or searches also used), ``methods`` (each with ``evaluations`` per noise level), ``skipped``,
         ``summary`` (learned vs best heuristic, seed spread) and ``timings``.
     """
-    from train.report import CHARTS, summary_tables, write_report
+    from train.report import write_report
+    from train.report_charts import CHARTS
+    from train.report_rows import summary_tables
 
     out_dir = Path(out_dir)
     began = time.perf_counter()

@@ -1,4 +1,5 @@
-"""The comparison report: summary tables, report.md and charts from ``run_compare``'s results.
+"""The comparison report: ``report.md`` from ``run_compare``'s results, with the charts of
+``train.report_charts``.
 
 Everything here reads the results dict only (plus the pattern arrays for the pattern figure), so a
 report can be rebuilt from ``results.json``. Learned patterns with several seeds enter tables and
@@ -10,258 +11,13 @@ import math
 from collections import defaultdict
 from pathlib import Path
 
-import matplotlib.ticker
 import numpy as np
 
 from capture_sim.atomic import write_text
 from patterns.families import FAMILIES, PRESET_LEVELS
 from reconstruct.photometric_stereo import INVALIDATING_FLAGS
-from train.figures import plt, save_figure
-
-CHARTS = {
-    "mae_vs_M": "mae_vs_M.png",
-    "mae_vs_capture_time": "mae_vs_capture_time.png",
-    "mae_vs_compute_time": "mae_vs_compute_time.png",
-    "mae_vs_noise": "mae_vs_noise.png",
-    "patterns": "patterns.png",
-    "specular_free": "mae_specular_free.png",
-}
-"""Chart name -> file name in the output folder."""
-
-_ROW_METRICS = ("mae", "median", "under_10", "invalid_fraction", "exposure", "capture_seconds", "compute_seconds")
-"""Means over a row's seeds at one noise level (``reconstruct_seconds`` is a median: ``aggregate_rows``)."""
-_KIND_ORDER = {"learned": 0, "rerender": 1, "search": 2, "external": 3, "heuristic": 4, "reference": 5}
-_KIND_STYLE = {
-    "learned": dict(color="tab:red", marker="o", linewidth=2.5, zorder=4),  # above the heuristics' markers
-    "rerender": dict(color="darkorange", marker="P", linewidth=2.0, linestyle="--", zorder=3),
-    "search": dict(marker="D", linewidth=1.5),  # colours per series: _OTHER_COLOURS
-    "external": dict(marker="s", linewidth=1.5),
-    "heuristic": dict(linewidth=1.0, alpha=0.8, fillstyle="none"),  # markers per series: _HEURISTIC_MARKERS
-    "reference": dict(color="black", marker="*", linewidth=1.0),
-}
-
-
-def _evaluation(method: dict, noise: float) -> dict | None:
-    for evaluation in method["evaluations"]:
-        if math.isclose(evaluation["noise_scale"], noise):
-            return evaluation
-    return None
-
-
-def aggregate_rows(results: dict, noise: float, specular_free: bool = False) -> list[dict]:
-    """One row per (series, M) at one noise level; learned seeds are averaged.
-
-    With ``specular_free``, the rows of the methods' ``specular_free`` summaries (measured at the
-    default noise only; empty at other noise levels).
-
-    Returns:
-        rows with series, label, kind, M, seeds (count), cost_seconds (mean), the means of mae,
-        median, under_10, invalid_fraction, exposure, capture_seconds, compute_seconds, the median
-        reconstruct_seconds over the methods' evaluations at every noise level, plus
-        mae_std over seeds (0 for one seed); sorted by kind, then M, then MAE.
-    """
-    groups: dict = defaultdict(list)
-    for method in results["methods"]:
-        if specular_free:
-            evaluation = method.get("specular_free") if math.isclose(noise, results["default_noise"]) else None
-        else:
-            evaluation = _evaluation(method, noise)
-        if evaluation is not None:
-            groups[(method["series"], method["M"])].append((method, evaluation))
-    rows = []
-    for (series, count), members in groups.items():
-        first = members[0][0]
-        row = {"series": series, "kind": first["kind"], "M": count, "seeds": len(members),
-               "label": "learned" if first["kind"] == "learned" else first["label"]}  # seeds differ per M: said per cell
-        for key in _ROW_METRICS:
-            row[key] = float(np.mean([evaluation[key] for _, evaluation in members]))
-        # Wall times of worker processes that share the cores swing by 2x: the median of the
-        # methods' test-scene evaluations at every noise level is steadier than one of them.
-        # Absent from results of older versions ('-' in the tables).
-        times = [evaluation.get("reconstruct_seconds", math.nan) for method, _ in members for evaluation in method["evaluations"]]
-        row["reconstruct_seconds"] = float(np.median(times)) if times else math.nan
-        row["mae_std"] = float(np.std([evaluation["mae"] for _, evaluation in members]))
-        costs = [method["cost_seconds"] for method, _ in members if method["cost_seconds"] is not None]
-        row["cost_seconds"] = float(np.mean(costs)) if costs else None
-        rows.append(row)
-    rows.sort(key=lambda r: (_KIND_ORDER.get(r["kind"], 9), r["M"], r["mae"]))
-    return rows
-
-
-def summary_tables(results: dict) -> dict:
-    """The derived numbers of the report.
-
-    Returns:
-        dict with ``rows`` (``aggregate_rows`` at the default noise), ``learned_vs_heuristic``
-        (per M and noise: learned MAE, best heuristic family and MAE at default parameters, the
-        ratio learned / best heuristic, and the same against the best of heuristics and searches),
-        ``seed_spread`` (per M and noise with several seeds: mean, std, min, max MAE) and
-        ``rerender`` (per M and noise: the normal-only learned MAE of the same seed against the
-        normal + re-rendering learned MAE, and their ratio), ``specular_free`` (rows and ratios
-        without the specular stacks) and ``learned_vs_more_captures``
-        (``learned_against_more_captures`` at the default noise).
-    """
-    comparisons, spread, rerender = [], [], []
-    for noise in results["noise_scales"]:
-        rows = aggregate_rows(results, noise)
-        comparisons += learned_against_best(rows, results["pattern_counts"], noise)
-        by_m: dict = defaultdict(list)
-        for method in results["methods"]:
-            evaluation = _evaluation(method, noise)
-            if method["kind"] == "learned" and evaluation is not None:
-                by_m[method["M"]].append((method["seed"], evaluation["mae"]))
-        learned_by_key = {(method["M"], method["seed"]): method for method in results["methods"] if method["kind"] == "learned"}
-        for method in results["methods"]:
-            normal_only = learned_by_key.get((method["M"], method["seed"]))
-            if method["kind"] != "rerender" or normal_only is None:
-                continue
-            with_rerender, without = _evaluation(method, noise), _evaluation(normal_only, noise)
-            # An all-invalid side measures the placeholder normal: no comparison to make.
-            if with_rerender is not None and without is not None and not (all_invalid(with_rerender) or all_invalid(without)):
-                rerender.append({"M": method["M"], "noise_scale": noise, "seed": method["seed"], "weight": method["info"].get("rerender_weight"),
-                                 "normal_only_mae": without["mae"], "rerender_mae": with_rerender["mae"],
-                                 "ratio": with_rerender["mae"] / max(without["mae"], 1e-12)})
-        for count, values in sorted(by_m.items()):
-            if len(values) > 1:
-                maes = np.array([mae for _, mae in values])
-                spread.append({"M": count, "noise_scale": noise, "seeds": [seed for seed, _ in values], "maes": maes.tolist(),
-                               "mean": float(maes.mean()), "std": float(maes.std()), "min": float(maes.min()), "max": float(maes.max())})
-    comparisons.sort(key=lambda c: (c["M"], c["noise_scale"]))
-    spread.sort(key=lambda s: (s["M"], s["noise_scale"]))
-    rerender.sort(key=lambda r: (r["M"], r["noise_scale"]))
-    default = results["default_noise"]
-    free_rows = aggregate_rows(results, default, specular_free=True)
-    specular_free = {"rows": free_rows, "learned_vs_heuristic": learned_against_best(free_rows, results["pattern_counts"], default)}
-    rows = aggregate_rows(results, default)
-    return {"rows": rows, "learned_vs_heuristic": comparisons, "seed_spread": spread, "rerender": rerender,
-            "specular_free": specular_free, "learned_vs_more_captures": learned_against_more_captures(rows)}
-
-
-def lowest_mae_per_m(rows: list[dict], kinds: tuple[str, ...]) -> dict:
-    """M -> the row of one of ``kinds`` with the lowest MAE at that M (the first on ties), among
-    rows that reconstructed something (``all_invalid`` rows measure the placeholder normal: at a
-    high noise one can beat every real reconstruction); M without such a row is left out."""
-    best: dict = {}
-    for row in rows:
-        if row["kind"] in kinds and not all_invalid(row) and (row["M"] not in best or row["mae"] < best[row["M"]]["mae"]):
-            best[row["M"]] = row
-    return best
-
-
-def learned_rows_per_m(rows: list[dict]) -> dict:
-    """M -> the learned row (``aggregate_rows`` averages the seeds into one row per M)."""
-    learned: dict = {}
-    for row in rows:
-        if row["kind"] == "learned":
-            learned.setdefault(row["M"], row)
-    return learned
-
-
-def learned_against_best(rows: list[dict], counts, noise: float) -> list[dict]:
-    """Per M with learned and heuristic rows (``aggregate_rows`` at one noise level): the learned
-    MAE, the best heuristic family and MAE, their ratio, and the same against the best of the
-    heuristics and the searches ("tuned")."""
-    learned = learned_rows_per_m(rows)
-    best = lowest_mae_per_m(rows, ("heuristic",))
-    best_tuned = lowest_mae_per_m(rows, ("heuristic", "search"))
-    searched = {row["M"] for row in rows if row["kind"] == "search"}
-
-    def tuned(count, key):  # None where no search ran at that M: the tuned columns would copy the others
-        return best_tuned[count][key] if count in searched else None
-
-    return [
-        {
-            "M": count, "noise_scale": noise, "learned_mae": learned[count]["mae"],
-            # The learned MAE, and so the ratios, then measure the placeholder normal.
-            "learned_all_invalid": all_invalid(learned[count]),
-            "best_heuristic": best[count]["series"], "best_heuristic_mae": best[count]["mae"],
-            "ratio": learned[count]["mae"] / max(best[count]["mae"], 1e-12),
-            "best_tuned": tuned(count, "label"), "best_tuned_mae": tuned(count, "mae"),
-            "ratio_tuned": None if count not in searched else learned[count]["mae"] / max(best_tuned[count]["mae"], 1e-12),
-        }
-        for count in counts if count in learned and count in best
-    ]
-
-
-def learned_against_more_captures(rows: list[dict]) -> list[dict]:
-    """For every learned M and every larger M with heuristic rows (``aggregate_rows`` at one noise
-    level): the learned MAE at M against the best heuristic at the larger M. A ratio <= 1 means
-    the learned patterns reach that accuracy with fewer captures.
-
-    Returns:
-        dicts with M, learned_mae, heuristic_M, best_heuristic, best_heuristic_mae and ratio,
-        sorted by (M, heuristic_M).
-    """
-    # All-invalid learned rows measure the placeholder normal: they match nothing.
-    learned = {count: row for count, row in learned_rows_per_m(rows).items() if not all_invalid(row)}
-    best = lowest_mae_per_m(rows, ("heuristic",))
-    return [
-        {"M": count, "learned_mae": learned[count]["mae"], "heuristic_M": more, "best_heuristic": best[more]["series"],
-         "best_heuristic_mae": best[more]["mae"], "ratio": learned[count]["mae"] / max(best[more]["mae"], 1e-12)}
-        for count in sorted(learned) for more in sorted(best) if more > count
-    ]
-
-
-# ---------------------------------------------------------------------------------------------
-# Charts
-# ---------------------------------------------------------------------------------------------
-
-
-def _caption(fig, text: str) -> None:
-    fig.text(0.5, -0.01, text, ha="center", va="top", fontsize=8, wrap=True)
-
-
-_HEURISTIC_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:cyan", "tab:olive", "tab:pink", "tab:gray", "gold", "teal")
-# Hollow, unlike the other kinds' filled markers: nine families at one M sit on top of each other in
-# the cost charts, where colour alone did not tell them apart.
-_HEURISTIC_MARKERS = ("v", "^", "<", ">", "p", "d", "h", "1", "2")
-_OTHER_COLOURS = {"search": ("tab:purple", "darkviolet", "mediumorchid", "indigo"), "external": ("tab:brown", "peru", "saddlebrown", "rosybrown")}
-# After every colour of its kind, a series takes the next marker (search: D first, external: s).
-_OTHER_MARKERS = {"search": ("D", "d", "H", "8"), "external": ("s", "X", "h", "8")}
-
-
-def _peers(rows: list[dict]) -> dict[str, list[str]]:
-    """Per kind, its series in the chart's rows, sorted: their ranks pick distinct styles
-    (``_style``), the same in every chart of one comparison, whose charts show the same methods."""
-    peers: dict = defaultdict(set)
-    for row in rows:
-        peers[row["kind"]].add(row["series"])
-    return {kind: sorted(names) for kind, names in peers.items()}
-
-
-def _style(kind: str, series: str = "", peers: dict | None = None) -> dict:
-    """Line style of a method: fixed per kind; colour and marker fixed per series. Heuristic
-    families go by their place in ``FAMILIES``; searches and external sets take their kind's
-    colours in the order of their names among ``peers`` (``_peers``), then further markers: two
-    never look alike in one chart."""
-    style = dict(_KIND_STYLE.get(kind, {}))
-    if kind == "heuristic":
-        order = list(FAMILIES)
-        index = order.index(series) if series in order else sum(map(ord, series))
-        style["color"] = _HEURISTIC_COLOURS[index % len(_HEURISTIC_COLOURS)]
-        style["marker"] = _HEURISTIC_MARKERS[index % len(_HEURISTIC_MARKERS)]
-    elif kind in _OTHER_COLOURS:
-        colours, markers = _OTHER_COLOURS[kind], _OTHER_MARKERS[kind]
-        names = (peers or {}).get(kind, [])
-        rank = names.index(series) if series in names else sum(map(ord, series))
-        style["color"] = colours[rank % len(colours)]
-        style["marker"] = markers[(rank // len(colours)) % len(markers)]
-    return style
-
-
-def _marker_style(kind: str, series: str, peers: dict | None = None) -> dict:
-    """``_style`` for a scatter of markers: its line settings dropped."""
-    return {key: value for key, value in _style(kind, series, peers).items() if key not in ("linewidth", "linestyle")}
-
-
-def _series(rows: list[dict]) -> dict:
-    series: dict = defaultdict(list)
-    for row in rows:
-        series[(row["kind"], row["label"], row["series"])].append(row)  # every seed's label is "learned" (``aggregate_rows``)
-    return {key: sorted(values, key=lambda r: r["M"]) for key, values in sorted(series.items(), key=lambda item: _KIND_ORDER.get(item[0][0], 9))}
-
-
-ALL_INVALID_LABEL = "every pixel invalid (MAE of the placeholder normal)"
+from train.report_charts import CHARTS, write_charts
+from train.report_rows import KIND_ORDER, aggregate_rows, all_invalid, evaluation_at, learned_rows_per_m, lowest_mae_per_m, summary_tables
 
 
 def invalid_note(fraction: float) -> str:
@@ -273,257 +29,6 @@ def invalid_note(fraction: float) -> str:
     return f" ({min(math.floor(round(fraction * 1e4, 3)) / 100, 99.99):g}% invalid)" if fraction >= 0.99 else ""
 
 
-def all_invalid(row: dict) -> bool:
-    """Whether every pixel of a method's evaluation was flagged invalid: its MAE measures the
-    placeholder normal, not a reconstruction."""
-    return row.get("invalid_fraction", 0.0) >= 1.0
-
-
-def _cross_out(ax, points: list[tuple[float, float]]) -> None:
-    """Mark chart points (x, y) of all-invalid evaluations with one labelled black cross each."""
-    if points:
-        ax.plot(*zip(*points), linestyle="none", marker="x", color="black", markersize=11, markeredgewidth=1.5, label=ALL_INVALID_LABEL, zorder=5)
-
-
-def _label_counts(ax, points: list[tuple[float, float, int]]) -> None:
-    """Label chart points (x, y, M) with "M=..." on log axes; points within 2 % of each other
-    share one label listing their M values (methods with the same result would pile up)."""
-    groups: list[list] = []
-    for x, y, count in sorted(points):
-        for group in groups:
-            if all(abs(math.log(max(a, 1e-12) / max(b, 1e-12))) < 0.02 for a, b in ((x, group[0]), (y, group[1]))):
-                group[2].add(count)
-                break
-        else:
-            groups.append([x, y, {count}])
-    for x, y, counts in groups:
-        ax.annotate("M=" + ",".join(map(str, sorted(counts))), (x, y), textcoords="offset points", xytext=(4, 3), fontsize=6)
-
-
-def close_up_limits(rows: list[dict], headroom: float = 1.4) -> tuple[float, float] | None:
-    """The MAE range (deg) of the close-up panel of ``chart_mae_vs_patterns``: from just below the
-    lowest MAE to ``headroom`` times the largest of the per-M lowest MAEs (the OLAT reference line
-    included when it lies within twice that), all-invalid rows left out. None without a valid row."""
-    valid = [row for row in rows if not all_invalid(row) and math.isfinite(row["mae"])]
-    best_per_m = [min(row["mae"] for row in valid if row["M"] == count) for count in {row["M"] for row in valid if row["kind"] != "reference"}]
-    if not best_per_m:
-        return None
-    high = headroom * max(best_per_m)
-    reference = [row["mae"] for row in valid if row["kind"] == "reference" and row["mae"] < 2 * high]
-    high = max([high] + [1.05 * value for value in reference])
-    return 0.95 * min(best_per_m + reference), high
-
-
-def chart_mae_vs_patterns(rows: list[dict], caption: str):
-    """MAE (deg) against M, one line per method; the OLAT reference as a horizontal line. Two
-    panels: every method, and a close-up of the best ones (``close_up_limits``), which the
-    full range squeezes into a few millimetres when some methods fail."""
-    limits, peers = close_up_limits(rows), _peers(rows)
-    fig, axes = plt.subplots(1, 2, figsize=(12.5, 4.8))
-    counts = sorted({row["M"] for row in rows if row["kind"] != "reference"})
-    for ax in axes:
-        for (kind, label, series), values in _series(rows).items():
-            if kind == "reference":
-                ax.axhline(values[0]["mae"], color="black", linestyle="--", linewidth=1, label=f"{values[0]['label']}")
-                continue
-            # An all-invalid point measures the placeholder normal: crossed out below, and the line
-            # breaks there instead of joining it to real reconstructions.
-            maes = [math.nan if all_invalid(row) else row["mae"] for row in values]
-            errors = [row["mae_std"] for row in values]
-            ax.errorbar([row["M"] for row in values], maes, yerr=errors if kind == "learned" else None, label=label, capsize=3, **_style(kind, series, peers))
-        _cross_out(ax, [(row["M"], row["mae"]) for row in rows if row["kind"] != "reference" and all_invalid(row)])
-        ax.set_xticks(counts)
-        ax.set_xlabel("number of patterns M (images)")
-        ax.set_ylabel("mean angular error (deg)")
-        ax.grid(alpha=0.3)
-    axes[0].set_title("Normal error against the number of patterns")
-    if limits is not None:
-        axes[1].set_ylim(*limits)
-    axes[1].set_title("Close-up of the most accurate methods")
-    axes[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    _caption(fig, caption)
-    fig.tight_layout()
-    return fig
-
-
-def _plain_tick(value: float, _position=None) -> str:
-    return f"{value:g}"
-
-
-def _leading_one_two_five(value: float, _position=None) -> str:
-    # The leading significant digit ("2e-01" for 0.2): the first character of f"{value:g}" is 0 below 1.
-    return f"{value:g}" if f"{value:.0e}"[0] in "125" else ""
-
-
-def plain_log_ticks(axis) -> None:
-    """Plain numbers (0.2, 0.5, 1, 2) on a log ``axis`` instead of powers of ten, the minor ticks
-    labelled at 1, 2 and 5 times a power of ten only: a range inside one decade has no major tick,
-    and labelling every minor tick makes the labels collide."""
-    axis.set_major_formatter(matplotlib.ticker.FuncFormatter(_plain_tick))
-    axis.set_minor_formatter(matplotlib.ticker.FuncFormatter(_leading_one_two_five))
-
-
-HEURISTIC_MARKER_SIZES = (5.0, 7.5, 10.0, 12.5)
-"""Marker sizes of heuristic families in the cost charts, by the rank of M (larger M: larger)."""
-
-
-def chart_mae_vs_cost(rows: list[dict], key: str, xlabel: str, title: str, caption: str):
-    """Scatter of MAE (deg) against a cost per method and M (log x axis). Points are labelled by M,
-    except the heuristic families', whose labels would pile up where nine families sit at one M:
-    their marker grows with M instead (``HEURISTIC_MARKER_SIZES``), as the caption says."""
-    fig, ax = plt.subplots(figsize=(9.0, 4.8))
-    labelled, peers = [], _peers(rows)
-    counts = sorted({row["M"] for row in rows if row["kind"] == "heuristic"})
-    for (kind, label, series), values in _series(rows).items():
-        xs = [max(row[key], 1e-6) for row in values]
-        ys = [row["mae"] for row in values]
-        style = _marker_style(kind, series, peers)
-        if kind == "heuristic":
-            for index, (x, y, row) in enumerate(zip(xs, ys, values)):
-                size = HEURISTIC_MARKER_SIZES[min(counts.index(row["M"]), len(HEURISTIC_MARKER_SIZES) - 1)]
-                ax.plot([x], [y], linestyle="none", markersize=size, label=label if index == 0 else "_nolegend_", **style)
-            continue
-        ax.plot(xs, ys, linestyle="none", markersize=7, label=label, **style)
-        labelled += [(x, y, row["M"]) for x, y, row in zip(xs, ys, values)]
-    if len(counts) > 1:
-        caption += f" Heuristic families: marker size grows with M ({', '.join(map(str, counts))})."
-    _label_counts(ax, labelled)
-    _cross_out(ax, [(max(row[key], 1e-6), row["mae"]) for row in rows if all_invalid(row)])
-    ax.set_xscale("log")
-    plain_log_ticks(ax.xaxis)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel("mean angular error (deg)")
-    ax.set_title(title)
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    _caption(fig, caption)
-    fig.tight_layout()
-    return fig
-
-
-def chart_mae_vs_noise(results: dict, caption: str):
-    """MAE (deg) against noise level, one panel per M, one line per method."""
-    counts = results["pattern_counts"]
-    fig, axes = plt.subplots(1, len(counts), figsize=(4.2 * len(counts), 6.0), squeeze=False, sharey=True)
-    per_noise = {noise: aggregate_rows(results, noise) for noise in results["noise_scales"]}
-    noises = sorted(per_noise)
-    peers = _peers([row for rows in per_noise.values() for row in rows])
-    for ax, count in zip(axes[0], counts):
-        keys = {}
-        for noise in noises:
-            for row in per_noise[noise]:
-                if row["M"] == count or row["kind"] == "reference":
-                    # An all-invalid point measures the placeholder normal: crossed out, the line breaks.
-                    broken = all_invalid(row) and row["kind"] != "reference"  # crossed out below, as the reference is not
-                    keys.setdefault((row["kind"], row["label"], row["series"]), []).append((noise, math.nan if broken else row["mae"]))
-        for (kind, label, series), points in sorted(keys.items(), key=lambda item: _KIND_ORDER.get(item[0][0], 9)):
-            style = _style(kind, series, peers)
-            if kind == "reference":
-                style.update(linestyle="--", marker="*")
-            ax.plot([p[0] for p in points], [p[1] for p in points], label=label, **style)
-        _cross_out(ax, [(noise, row["mae"]) for noise in noises for row in per_noise[noise]
-                        if row["M"] == count and row["kind"] != "reference" and all_invalid(row)])
-        ax.set_xscale("symlog", linthresh=min([n for n in noises if n > 0], default=1.0))
-        ax.set_xticks(noises)
-        ax.set_xticklabels([f"{n:g}" for n in noises])
-        ax.set_xlabel("noise scale (x rig noise variance)")
-        ax.set_title(f"M = {count}")
-        ax.grid(alpha=0.3)
-    axes[0, 0].set_ylabel("mean angular error (deg)")
-    legend = {}
-    for ax in axes[0]:
-        for handle, label in zip(*ax.get_legend_handles_labels()):
-            legend.setdefault(label, handle)
-    fig.suptitle("Normal error against sensor noise (where methods fail)")
-    # Axes in the top 70 %, the legend below them, the caption at the bottom: nothing overlaps.
-    fig.tight_layout(rect=(0, 0.3, 1, 0.97))
-    fig.legend(list(legend.values()), list(legend), fontsize=7, loc="upper center", ncol=min(4, max(1, len(legend))), bbox_to_anchor=(0.5, 0.25))
-    fig.text(0.5, 0.005, caption, ha="center", va="bottom", fontsize=8, wrap=True)
-    return fig
-
-
-def chart_specular_free(rows: list[dict], free_rows: list[dict], caption: str):
-    """MAE (deg) on the test scenes against MAE without their specular stacks, one point per method
-    and M (log axes); the distance above the diagonal is the error due to specular reflection."""
-    free = {(row["series"], row["M"]): row["mae"] for row in free_rows}
-    fig, ax = plt.subplots(figsize=(9.0, 5.2))
-    labelled, peers = [], _peers(rows)
-    for (kind, label, series), values in _series(rows).items():
-        points = [(free[(row["series"], row["M"])], row["mae"], row["M"]) for row in values if (row["series"], row["M"]) in free]
-        if not points:
-            continue
-        style = _marker_style(kind, series, peers)
-        ax.plot([p[0] for p in points], [p[1] for p in points], linestyle="none", markersize=7, label=label, **style)
-        if kind != "heuristic":
-            labelled += points
-    _label_counts(ax, labelled)
-    _cross_out(ax, [(free[(row["series"], row["M"])], row["mae"]) for row in rows if (row["series"], row["M"]) in free and all_invalid(row)])
-    low = max(min([*free.values(), *(row["mae"] for row in rows)], default=0.1), 1e-2)
-    high = max([*free.values(), *(row["mae"] for row in rows)], default=1.0)
-    ax.plot([low, high], [low, high], color="grey", linewidth=1, linestyle=":", label="no specular error (y = x)")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_ylim(bottom=max(min((row["mae"] for row in rows), default=low), 1e-2) / 1.5)  # the diagonal may leave the plot below
-    plain_log_ticks(ax.xaxis)
-    plain_log_ticks(ax.yaxis)
-    ax.set_xlabel("mean angular error without specular reflection (deg)")
-    ax.set_ylabel("mean angular error on the test scenes (deg)")
-    ax.set_title("How much of each method's error is specular reflection")
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
-    _caption(fig, caption)
-    fig.tight_layout()
-    return fig
-
-
-def pattern_strip(patterns: np.ndarray, gap: int = 1) -> np.ndarray:
-    """(R, M * (C + gap) - gap, 3) image of M patterns side by side, white gaps between them."""
-    count, rows, cols, _ = patterns.shape
-    strip = np.ones((rows, count * (cols + gap) - gap, 3), dtype=np.float32)
-    for index in range(count):
-        strip[:, index * (cols + gap): index * (cols + gap) + cols] = patterns[index]
-    return strip
-
-
-def chart_patterns(entries: list[tuple[str, np.ndarray]], caption: str):
-    """One row per pattern set: its M patterns as display set values (row 0 = top of the panel)."""
-    widest = max(patterns.shape[0] * (patterns.shape[2] + 1) for _, patterns in entries)
-    fig, axes = plt.subplots(len(entries), 1, figsize=(min(16, 2.0 + widest / 10), 0.95 * len(entries) + 0.8), squeeze=False)
-    for ax, (title, patterns) in zip(axes[:, 0], entries):
-        strip = pattern_strip(patterns)
-        canvas = np.ones((strip.shape[0], widest, 3), dtype=np.float32)
-        canvas[:, : strip.shape[1]] = strip
-        ax.imshow(canvas, interpolation="nearest")
-        ax.set_title(title, fontsize=8, loc="left")
-        ax.set_axis_off()
-    fig.suptitle("Pattern sets (display set values in [0, 1], before the display gamma)")
-    _caption(fig, caption)
-    fig.tight_layout()
-    return fig
-
-
-def pattern_entries(results: dict, rows: list[dict], pattern_sets: dict) -> list[tuple[str, np.ndarray]]:
-    """Pattern sets to draw: per M the first learned seed, the best heuristic, searches, externals."""
-    entries = []
-    for count in results["pattern_counts"]:
-        learned = sorted((m for m in results["methods"] if m["kind"] == "learned" and m["M"] == count), key=lambda m: m["seed"])
-        if learned and learned[0]["id"] in pattern_sets:
-            entries.append((f"learned, M = {count} (seed {learned[0]['seed']})", pattern_sets[learned[0]["id"]]))
-        heuristics = [row for row in rows if row["kind"] == "heuristic" and row["M"] == count]
-        if heuristics:
-            best = min(heuristics, key=lambda row: row["mae"])
-            method_id = next((m["id"] for m in results["methods"] if m["kind"] == "heuristic" and m["series"] == best["series"] and m["M"] == count), None)
-            if method_id in pattern_sets:
-                entries.append((f"best heuristic, M = {count}: {best['series']} ({best['mae']:.1f} deg)", pattern_sets[method_id]))
-        for method in results["methods"]:
-            if method["kind"] in ("rerender", "search", "external") and method["M"] == count and method["id"] in pattern_sets:
-                entries.append((f"{method['kind']}: {method['label']}, M = {count}", pattern_sets[method["id"]]))
-    return entries
-
-
-# ---------------------------------------------------------------------------------------------
-# report.md
-# ---------------------------------------------------------------------------------------------
 
 
 def _fmt(value, digits: int = 2) -> str:
@@ -591,7 +96,7 @@ def _reference_flags(results: dict) -> str:
     """' (a poor fit on 40% of the pixels)' from the OLAT reference's evaluation at the default
     noise ('' without one, or for results of older versions, which carry no flags)."""
     method = next((m for m in results["methods"] if m["kind"] == "reference"), None)
-    evaluation = None if method is None else _evaluation(method, results["default_noise"])
+    evaluation = None if method is None else evaluation_at(method, results["default_noise"])
     share = ((evaluation or {}).get("flagged") or {}).get("poor_fit", 0.0)
     return f" (a poor fit on {100 * share:.3g}% of the pixels)" if share > 0 else ""
 
@@ -661,7 +166,7 @@ def families_section(results: dict) -> list[str]:
         if method["kind"] != "heuristic":
             continue
         names += [method["series"]] if method["series"] not in names else []
-        evaluation = _evaluation(method, default)
+        evaluation = evaluation_at(method, default)
         if evaluation is not None and evaluation["invalid_fraction"] >= 1.0:
             failed[method["series"]].append((method["M"], evaluation.get("flagged")))
         elif evaluation is not None and evaluation["invalid_fraction"] >= MANY_INVALID:
@@ -766,7 +271,7 @@ def specular_free_section(results: dict, summary: dict, rows: list[dict]) -> lis
         "reflection costs the Lambertian reconstructor (its model error on glossy pixels and clipped highlights). Specular share = "
         "difference / MAE; '-' where every pixel is invalid both ways.", ""]
     body = []
-    for row in sorted(rows, key=lambda r: (r["M"], _KIND_ORDER.get(r["kind"], 9), r["label"])):
+    for row in sorted(rows, key=lambda r: (r["M"], KIND_ORDER.get(r["kind"], 9), r["label"])):
         other = free_rows.get((row["series"], row["M"]))
         if other is None:
             continue
@@ -822,7 +327,7 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict, into: Path) -
     out_dir, into = Path(out_dir), Path(into)
     summary = results.get("summary") or summary_tables(results)
     rows = summary["rows"]
-    written = _write_charts(results, summary, pattern_sets, into)
+    written = write_charts(results, summary, pattern_sets, into, _pixels_short(results))
     lines = ["# Pattern comparison", ""]
     lines += summary_section(results, summary)
     lines += ["## How it was measured", "", _measurement_caption(results), ""]
@@ -855,32 +360,6 @@ def write_report(results: dict, out_dir: Path, pattern_sets: dict, into: Path) -
     return path
 
 
-def _write_charts(results: dict, summary: dict, pattern_sets: dict, into: Path) -> set[str]:
-    """Write the report's charts into ``into``; returns the ``CHARTS`` keys written."""
-    rows = summary["rows"]
-    short = f"{len(results['test_scenes'])} test scenes, noise scale {results['default_noise']:g}, analytic PS (OLAT: Woodham); MAE averaged over scenes."
-    learned_seeds = [row["seeds"] for row in rows if row["kind"] == "learned"]
-    seeds_note = "" if not learned_seeds else " Learned: mean over seeds, bars = std." if max(learned_seeds) > 1 else " Learned: one seed."
-    save_figure(chart_mae_vs_patterns(rows, short + seeds_note), into / CHARTS["mae_vs_M"])
-    save_figure(chart_mae_vs_cost(rows, "capture_seconds", f"capture time (s) = M x {results['exposure_ms']:g} ms x e / e_white", "Accuracy against capture time",
-                                  short), into / CHARTS["mae_vs_capture_time"])
-    save_figure(chart_mae_vs_cost(rows, "reconstruct_seconds", f"compute time per scene (s): reconstruction of {_pixels_short(results)}, CPU",
-                                  "Speed-accuracy: normal error against compute time", short), into / CHARTS["mae_vs_compute_time"])
-    save_figure(chart_mae_vs_noise(results, f"{len(results['test_scenes'])} test scenes; analytic PS (OLAT: Woodham); noise scale multiplies the rig's noise variances."),
-                into / CHARTS["mae_vs_noise"])
-    written = {"mae_vs_M", "mae_vs_capture_time", "mae_vs_compute_time", "mae_vs_noise"}
-    free_rows = (summary.get("specular_free") or {}).get("rows")
-    if free_rows:
-        save_figure(chart_specular_free(rows, free_rows, f"{short} x: the same scenes, pixels and noise without the specular stacks."),
-                    into / CHARTS["specular_free"])
-        written.add("specular_free")
-    entries = pattern_entries(results, rows, pattern_sets)
-    if entries:
-        save_figure(chart_patterns(entries, "Each row: one pattern set, patterns left to right; superpixel grid in pattern order (on the preset rigs column 0 is at camera-left, and the display, facing the object, shows it mirrored left-right)."), into / CHARTS["patterns"])
-        written.add("patterns")
-    return written
-
-
 def _accuracy_section(results: dict, rows: list[dict]) -> list[str]:
     """Method x M tables of MAE, median, capture and compute time at the default noise, then one
     table per M with every metric."""
@@ -892,7 +371,7 @@ def _accuracy_section(results: dict, rows: list[dict]) -> list[str]:
             continue
         series_rows[row["series"]][row["M"]] = row
         labels[row["series"]] = (row["kind"], row["label"])
-    ordered = sorted(series_rows, key=lambda s: (_KIND_ORDER.get(labels[s][0], 9), labels[s][1]))
+    ordered = sorted(series_rows, key=lambda s: (KIND_ORDER.get(labels[s][0], 9), labels[s][1]))
     reference = next((row for row in rows if row["kind"] == "reference"), None)
 
     def pivot(key: str, digits: int | None) -> str:
@@ -935,7 +414,7 @@ def _noise_section(results: dict, rows: list[dict]) -> list[str]:
     noises = results["noise_scales"]
     per_noise = {noise: {(row["series"], row["M"]): row for row in aggregate_rows(results, noise)} for noise in noises}
     body = []
-    for row in sorted(rows, key=lambda r: (r["M"], _KIND_ORDER.get(r["kind"], 9), r["label"])):
+    for row in sorted(rows, key=lambda r: (r["M"], KIND_ORDER.get(r["kind"], 9), r["label"])):
         key = (row["series"], row["M"])
         body.append([row["label"], str(row["M"])] + [pivot_cell(per_noise[n][key], "mae", 2) if key in per_noise[n] else "-" for n in noises])
     return lines + [_table(["method", "M"] + [f"noise {n:g}" for n in noises], body), ""]
@@ -1018,7 +497,7 @@ def _scene_maes(results: dict, count: int | None, noise: float, kind: str, serie
     values: list[list] = [[] for _ in results["test_scenes"]]
     for method in results["methods"]:
         if method["kind"] == kind and (count is None or method["M"] == count) and (series is None or method["series"] == series):
-            evaluation = _evaluation(method, noise)
+            evaluation = evaluation_at(method, noise)
             for position, scene in enumerate((evaluation or {}).get("scenes", [])[: len(values)]):
                 values[position].append((scene["mae"], scene.get("invalid_fraction", 0.0)))
     return [(float(np.mean([mae for mae, _ in entries])), min(invalid for _, invalid in entries)) if entries else None for entries in values]
@@ -1139,7 +618,7 @@ def _search_section(results: dict, out_dir: Path) -> list[str]:
     body = []
     for method in searches:
         info = method["info"]
-        test = _evaluation(method, results["default_noise"])
+        test = evaluation_at(method, results["default_noise"])
         trace = Path(info["trace_png"])  # relative to the output folder when inside it (``compare.method_record``)
         if not trace.is_absolute() and not (out_dir / trace).exists() and trace.exists():
             trace = trace.resolve()  # results of older versions: relative to the working directory
