@@ -248,9 +248,11 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
     """Recover a pattern set from exported frames.
 
     Reads ``manifest.json``, verifies the SHA-256, size and bit depth of every frame it lists (and
-    that the folder holds no other frame files), reads the pattern frames and averages the central
-    half of every superpixel block (undoing the column mirroring). The black, white and OLAT
-    frames' contents are checked by their SHA-256 only.
+    that the folder holds no other frame files) and that the frames are listed in the export's
+    play order (patterns 0..M-1, black, white, the OLAT frames light by light with light =
+    row x C + col), reads the pattern frames and averages the central half of every superpixel
+    block (undoing the column mirroring). The black, white and OLAT frames' contents are checked
+    by their SHA-256 only.
 
     Args:
         frames_dir: folder written by ``export_frames``.
@@ -285,10 +287,10 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
     if unlisted:  # a rig that plays the folder's frames would show them too
         raise InputError(f"{frames_dir}: frame files not listed in the manifest: {', '.join(unlisted[:5])}"
                          f"{f' and {len(unlisted) - 5} more' if len(unlisted) > 5 else ''}; remove them or export again")
-    pattern_frames = sorted((f for f in manifest["frames"] if f.get("kind") == "pattern"), key=lambda f: f["index"])
+    pattern_frames = [f for f in manifest["frames"] if f["kind"] == "pattern"]  # in index order (_read_manifest)
     # The count first: a forged num_patterns of 10^12 must not build a list of that length.
-    if len(pattern_frames) != manifest["num_patterns"] or [f["index"] for f in pattern_frames] != list(range(len(pattern_frames))):
-        raise InputError(f"{frames_dir}: manifest lists pattern frames {[f['index'] for f in pattern_frames]}, expected 0..{manifest['num_patterns'] - 1}")
+    if len(pattern_frames) != manifest["num_patterns"]:
+        raise InputError(f"{frames_dir}: manifest lists {len(pattern_frames)} pattern frames, but num_patterns is {manifest['num_patterns']}")
     # The listed values first: their shape must restate the grid before a frame is averaged over it.
     try:
         listed = np.asarray(manifest["patterns"])
@@ -318,6 +320,9 @@ def import_frames(frames_dir: str | Path, rig: Rig | None = None) -> tuple[np.nd
         check_patterns_match_rig(patterns, rig.rows, rig.cols, rig.name)
     return patterns, manifest
 
+
+FRAME_KINDS = {"pattern": ("index",), "black": (), "white": (), "olat": ("light", "row", "col")}
+"""The manifest's frame kinds, in play order, and the whole-number fields each frame of a kind has."""
 
 _RGB = 2
 """PNG colour type of the frames (truecolour, no alpha)."""
@@ -352,14 +357,30 @@ def _read_manifest(frames_dir: Path) -> dict:
     for frame in manifest["frames"]:
         if not isinstance(frame, dict) or not isinstance(frame.get("file"), str) or Path(frame["file"]).name != frame["file"]:
             raise InputError(f"{path}: every manifest frame needs a plain file name, got {frame!r}")
-        if frame.get("kind") == "pattern" and (not isinstance(frame.get("index"), int) or isinstance(frame["index"], bool)):
-            raise InputError(f"{path}: pattern frame {frame['file']} has no integer index")
+        if frame.get("kind") not in FRAME_KINDS:
+            raise InputError(f"{path}: frame {frame['file']} has kind {frame.get('kind')!r}, not one of {', '.join(FRAME_KINDS)}")
+        for key in FRAME_KINDS[frame["kind"]]:
+            if not is_whole_number(frame.get(key)):
+                raise InputError(f"{path}: {frame['kind']} frame {frame['file']} has no whole-number {key}")
     # Fields that restate one another must agree: an edited manifest is not silently half-applied.
     files = [frame["file"] for frame in manifest["frames"]]
     if len(set(files)) != len(files):
         raise InputError(f"{path}: the manifest lists a frame file twice")
     if "capture_order" in manifest and manifest["capture_order"] != files:
         raise InputError(f"{path}: capture_order does not list the frames in their manifest order")
+    # The frames in play order restate the export's sequence: patterns 0..M-1, then at most one
+    # black and one white frame, then the OLAT frames light by light (light = row * C + col).
+    # A hand-edited order or numbering would pair captures with the wrong lighting.
+    rows, cols = manifest["rows"], manifest["cols"]
+    kinds = [frame["kind"] for frame in manifest["frames"]]
+    indices = [frame["index"] for frame in manifest["frames"] if frame["kind"] == "pattern"]
+    if indices != list(range(len(indices))):
+        raise InputError(f"{path}: manifest lists pattern frames {indices[:12]}{' ...' if len(indices) > 12 else ''} in play order, expected 0, 1, 2, ...")
+    if kinds != sorted(kinds, key=list(FRAME_KINDS).index) or kinds.count("black") > 1 or kinds.count("white") > 1:
+        raise InputError(f"{path}: frames are not in the export's play order (patterns, then one black, one white, then OLAT frames)")
+    olat = [(frame["light"], frame["row"], frame["col"]) for frame in manifest["frames"] if frame["kind"] == "olat"]
+    if olat and olat != [(row * cols + col, row, col) for row in range(rows) for col in range(cols)]:
+        raise InputError(f"{path}: the OLAT frames do not list the {rows} x {cols} grid's lights 0..{rows * cols - 1} in order (light = row x {cols} + col)")
     for key, count, pixels in (("row_boundaries", manifest["rows"], panel[0]), ("col_boundaries", manifest["cols"], panel[1])):
         if key in manifest and manifest[key] != superpixel_boundaries(count, pixels).tolist():
             raise InputError(f"{path}: {key} do not split {pixels} display pixels into {count} superpixels as the export does")

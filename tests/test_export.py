@@ -194,7 +194,7 @@ def test_import_refuses_tampered_or_incomplete_folders(tmp_path, small_rig):
     forged = json.loads(json.dumps(manifest))
     next(frame for frame in forged["frames"] if frame.get("kind") == "pattern")["index"] = False
     (tmp_path / "manifest.json").write_text(json.dumps(forged))
-    with pytest.raises(InputError, match="no integer index"):
+    with pytest.raises(InputError, match="no whole-number index"):
         import_frames(tmp_path)
     # Fields that restate one another must agree.
     for key, change, message in (("capture_order", lambda order: order[::-1], "capture_order"),
@@ -215,6 +215,47 @@ def test_import_refuses_tampered_or_incomplete_folders(tmp_path, small_rig):
     (tmp_path / "manifest.json").write_text("[" * 100_000 + "]" * 100_000)  # nested past Python's recursion limit
     with pytest.raises(InputError, match="not a readable manifest"):
         import_frames(tmp_path)
+
+
+def test_import_refuses_a_manifest_whose_play_order_or_numbering_was_edited(tmp_path, small_rig):
+    """Captures are taken in play order: a manifest whose pattern indices, kinds or OLAT numbering
+    disagree with that order would pair captures with the wrong lighting."""
+    values = _patterns(small_rig, 2)
+    manifest = export_frames(values, small_rig, tmp_path, include_olat=True)
+    assert np.abs(import_frames(tmp_path)[0] - values).max() <= 0.5 / 255 + 1e-6
+
+    def edited(change):
+        copy = json.loads(json.dumps(manifest))
+        change(copy)
+        copy["capture_order"] = [frame["file"] for frame in copy["frames"]]
+        (tmp_path / "manifest.json").write_text(json.dumps(copy))
+        return copy
+
+    def swap_indices(copy):  # the listed values follow, so only the play order tells
+        first, second = copy["frames"][0], copy["frames"][1]
+        first["index"], second["index"] = 1, 0
+        copy["patterns"] = copy["patterns"][::-1]
+
+    def relabel_olat(copy):
+        copy["frames"][5].update(light=999, row=50, col=7)
+
+    def white_as_olat(copy):
+        next(frame for frame in copy["frames"] if frame["kind"] == "white")["kind"] = "olat"
+
+    def unknown_kind(copy):
+        copy["frames"][2]["kind"] = "foo"
+
+    def olat_before_patterns(copy):
+        copy["frames"] = copy["frames"][-1:] + copy["frames"][:-1]
+
+    cases = ((swap_indices, "pattern frames \\[1, 0\\] in play order"), (relabel_olat, "OLAT frames do not list"),
+             (white_as_olat, "no whole-number light"), (unknown_kind, "kind 'foo'"), (olat_before_patterns, "play order"))
+    for change, message in cases:
+        edited(change)
+        with pytest.raises(InputError, match=message):
+            import_frames(tmp_path)
+    edited(lambda copy: None)  # the same manifest with the capture order rebuilt still imports
+    assert np.abs(import_frames(tmp_path)[0] - values).max() <= 0.5 / 255 + 1e-6
 
 
 def test_png_with_a_short_header_chunk_is_refused(tmp_path):
@@ -342,7 +383,7 @@ def test_export_and_pattern_commands_never_destroy_their_inputs(tmp_path, small_
     manifest = json.loads((out / "manifest.json").read_text())
     (out / "manifest.json").write_text(json.dumps(dict(manifest, num_patterns=10**12)))
     (out / "pattern_009.png").unlink()  # a frame the manifest does not list is refused first
-    with pytest.raises(InputError, match="manifest lists pattern frames"):
+    with pytest.raises(InputError, match="manifest lists 2 pattern frames, but num_patterns is 1000000000000"):
         import_frames(out)
 
 
