@@ -134,7 +134,11 @@ class Family:
         self.check(num_patterns, rows, cols)
         if preset not in PRESETS:
             raise InputError(f"unknown preset {preset!r}; presets: {', '.join(PRESETS)}")
-        return self._parameters(int(num_patterns), int(rows), int(cols), preset, check_seed("seed", seed))
+        seed = check_seed("seed", seed)
+        try:
+            return self._parameters(int(num_patterns), int(rows), int(cols), preset, seed)
+        except InputError as err:  # a grid too small for a pattern: say which family and M
+            raise InputError(f"{self.name}: M = {num_patterns}: {err}") from None
 
     def bounds(self, num_patterns: int, rows: int = 9, cols: int = 16) -> tuple[np.ndarray, np.ndarray]:
         """(low, high): two (P,) float64 arrays of the search bounds."""
@@ -264,18 +268,31 @@ def _extent(angle_deg: float, rows: int, cols: int) -> float:
     return round(cols * abs(math.cos(theta)) + rows * abs(math.sin(theta)), 9)
 
 
-def _default_split_offset(angle_deg: float, rows: int, cols: int) -> float:
-    """Edge position midway between the two projected cell centres around the panel centre.
+def _distinct_projections(angle_deg: float, rows: int, cols: int) -> np.ndarray:
+    """Sorted distinct positions (cells) of the superpixel centres along a direction.
 
-    Ties (an odd number of rows, e.g. 9) go to the positive side, which leaves the middle row in
-    the dark half, as in the published top/bottom patterns (rows 0..3 against 4..8).
+    Raises:
+        InputError: fewer than two (a single row or column across the direction): a ramp or split
+            along it would be flat (a split's edge would pass through every cell, leaving them all
+            at the half level), so the grid is too small for the pattern.
     """
     theta = math.radians(angle_deg)
     x = np.arange(cols) + 0.5 - cols / 2
     y = np.arange(rows) + 0.5 - rows / 2
     projections = np.unique(np.round((x[None, :] * math.cos(theta) + y[:, None] * math.sin(theta)).ravel(), 9))
     if projections.size < 2:
-        return 0.0
+        raise InputError(f"a pattern varying towards {angle_deg:g} deg would be flat on a {rows} x {cols} grid "
+                         f"(its superpixels lie on one line across that direction): the grid is too small for this family at this M")
+    return projections
+
+
+def _default_split_offset(angle_deg: float, rows: int, cols: int) -> float:
+    """Edge position midway between the two projected cell centres around the panel centre.
+
+    Ties (an odd number of rows, e.g. 9) go to the positive side, which leaves the middle row in
+    the dark half, as in the published top/bottom patterns (rows 0..3 against 4..8).
+    """
+    projections = _distinct_projections(angle_deg, rows, cols)
     midpoints = (projections[1:] + projections[:-1]) / 2
     best = min(midpoints, key=lambda mid: (round(abs(mid), 9), -mid))
     return float(best)
@@ -407,7 +424,9 @@ class GroupedOlat(Family):
 
 
 def _ramp_parameters(angle: float, rows: int, cols: int, prefix: str = "", suffix: str = "") -> list[Parameter]:
-    """angle_deg, offset (0.5 cell: the published ramps end at hi on the bright row) and length."""
+    """angle_deg, offset (0.5 cell: the published ramps end at hi on the bright row) and length.
+    Raises InputError if the ramp would be flat on the grid (``_distinct_projections``)."""
+    _distinct_projections(angle, rows, cols)
     size = float(max(rows, cols))
     return [
         Parameter(f"{prefix}angle_deg{suffix}", -360.0, 360.0, _wrap_deg(angle)),

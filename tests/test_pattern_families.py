@@ -60,10 +60,10 @@ def test_unknown_family_raises_with_valid_names():
 
 
 def test_generate_takes_float32_values_at_the_bounds_and_refuses_overflowing_sharpness():
-    """float32 rounding of a float64 bound (tri_gradient's radius sqrt(20)) used to count as outside,
-    and a sharpness finite as a Python float but not in float32 gave NaN patterns."""
+    """float32 rounding of a float64 bound (tri_gradient's radius sqrt(80), which rounds up) used to
+    count as outside, and a sharpness finite as a Python float but not in float32 gave NaN patterns."""
     family = get_family("tri_gradient")
-    for count, rows, cols in ((2, 1, 2), (4, 5, 7)):
+    for count, rows, cols in ((2, 2, 4), (4, 5, 7)):
         low, high = family.bounds(count, rows, cols)
         for edge in (low, high):
             assert torch.isfinite(family.generate(torch.tensor(edge, dtype=torch.float32), count, rows, cols)).all()
@@ -352,9 +352,13 @@ def test_default_sharpness_gives_binary_edges():
 
 
 def test_a_grid_too_small_for_a_family_is_refused():
-    # Top/bottom halves on one row, or ramps on a single superpixel, repeat other patterns.
-    with pytest.raises(InputError, match="identical patterns"):
-        make_patterns("mono_complementary", 4, 1, 6)
-    with pytest.raises(InputError, match="identical patterns"):
-        make_patterns("mono_gradient", 4, 1, 1)
+    # Top/bottom halves or vertical ramps on one row are flat: a split's edge passed through every
+    # cell (all at the half level) and a ramp gave one value; such sets were made without a word.
+    for name, count, rows, cols in (("mono_complementary", 4, 1, 6), ("mono_complementary", 3, 1, 6), ("tri_complementary", 4, 1, 6),
+                                    ("tri_complementary", 2, 6, 1), ("mono_gradient", 3, 1, 6), ("tri_gradient", 2, 1, 2)):
+        with pytest.raises(InputError, match=f"{name}: M = {count}: a pattern varying towards .* would be flat on a {rows} x {cols} grid"):
+            make_patterns(name, count, rows, cols)
+    with pytest.raises(InputError, match="identical patterns"):  # five splits of a 2 x 2 grid: two repeat
+        make_patterns("mono_complementary", 5, 2, 2)
     assert make_patterns("mono_complementary", 2, 1, 6).shape == (2, 1, 6, 3)  # left/right halves still work
+    assert make_patterns("mono_gradient", 2, 6, 1).shape == (2, 6, 1, 3)  # as do vertical ramps on a column
