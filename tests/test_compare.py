@@ -1,6 +1,7 @@
 """Comparison: config loading, the derived tables against plain computations, and a tiny end-to-end run."""
 import dataclasses
 import json
+import math
 import os
 import shutil
 import warnings
@@ -270,7 +271,7 @@ def test_external_file_on_another_grid_is_skipped_with_a_warning(scenes, tmp_pat
     (dict(search=[{"family": "tri_random", "M": 4, "algorithm": "LN_BOBYQA"}], pattern_counts=[2, 4], learned_counts=[2]), None),  # 1728: fine
     (dict(learned_at={2: {"init": "olat"}}, learned_counts=[4, 2], pattern_counts=[2, 4]), None),
     (dict(learned_at={1: {"init": "tri_complementary"}}, learned_counts=[2, 1], pattern_counts=[1, 2]), "tri_complementary supports M = 2.."),
-    (dict(learned_counts=[2, 1], pattern_counts=[1, 2]), "init 'auto' starts M = 1"),
+    (dict(learned_counts=[2, 1], pattern_counts=[1, 2]), r"init 'auto' starts M = 1 .* set init to a family that does \(train's --init, or init in the config"),
 ])
 def test_a_run_that_cannot_start_stops_the_comparison_before_learning(scenes, tmp_path, monkeypatch, changes, message):
     """Every learning start and search setup is checked before the first run: each used to fail
@@ -341,7 +342,9 @@ def fake_results():
 def test_summary_tables_against_plain_computation():
     results = fake_results()
     rows = {row["series"]: row for row in aggregate_rows(results, 2.0)}
-    assert rows["learned"]["mae"] == pytest.approx(18.0) and rows["learned"]["mae_std"] == pytest.approx(1.0)
+    # Sample standard deviations over seeds: two seeds 2 degrees apart spread by sqrt(2).
+    assert rows["learned"]["mae"] == pytest.approx(18.0) and rows["learned"]["mae_std"] == pytest.approx(math.sqrt(2.0))
+    assert rows["a"]["mae_std"] == 0.0
     assert rows["learned"]["cost_seconds"] == pytest.approx(15.0) and rows["learned"]["seeds"] == 2
     # The label is the series' at every M; the seed count goes with each cell of the tables.
     assert rows["learned"]["label"] == "learned" and pivot_cell(rows["learned"], "mae", 2) == "18.00 (mean of 2 seeds)"
@@ -368,7 +371,7 @@ def test_summary_tables_against_plain_computation():
     assert rerender[2.0]["ratio"] == pytest.approx(20.0 / 17.0) and rerender[2.0]["weight"] == 0.5
     spread = {s["noise_scale"]: s for s in summary["seed_spread"]}
     assert spread[0.5]["seeds"] == [0, 1] and spread[0.5]["min"] == 8.0 and spread[0.5]["max"] == 9.0
-    assert spread[2.0]["std"] == pytest.approx(np.std([17.0, 19.0]))
+    assert spread[2.0]["std"] == pytest.approx(np.std([17.0, 19.0], ddof=1))
     assert summary["specular_free"] == {"rows": [], "learned_vs_heuristic": []}
 
 
@@ -392,10 +395,12 @@ def test_learned_against_more_captures_against_plain_computation():
 def test_specular_free_summary_against_plain_computation():
     results = fake_results()
     for method, mae in zip(results["methods"], (4.0, 3.0, 6.0, 3.5, 4.5, 5.0)):
-        method["specular_free"] = dict(method["evaluations"][0], mae=mae)  # measured at the default noise (0.5)
+        method["specular_free"] = dict(method["evaluations"][0], mae=mae, reconstruct_seconds=mae / 100)  # at the default noise (0.5)
     free = summary_tables(results)["specular_free"]
     rows = {row["series"]: row for row in free["rows"]}
     assert rows["learned"]["mae"] == pytest.approx(4.0) and rows["b"]["mae"] == 3.0
+    # The times of the specular-free evaluations, not those of the main ones (0.04 s).
+    assert rows["b"]["reconstruct_seconds"] == pytest.approx(0.03) and rows["learned"]["reconstruct_seconds"] == pytest.approx(0.04)
     (comparison,) = free["learned_vs_heuristic"]
     assert comparison["noise_scale"] == 0.5 and comparison["best_heuristic"] == "b" and comparison["ratio"] == pytest.approx(4.0 / 3.0)
     assert aggregate_rows(results, 2.0, specular_free=True) == []  # only measured at the default noise
@@ -841,7 +846,7 @@ def test_families_section_says_what_each_family_is_and_where_every_pixel_was_inv
 def test_report_text_follows_the_config_that_ran():
     """No sentence about learning, searches, the OLAT reference, heuristic presets or BOBYQA where
     the comparison had none; seeds 'at every M' only where learning ran at every M."""
-    from train.report import _capture_text, _measurement_caption, _preset_text, _search_section, _trained_noise_text, summary_section
+    from train.report import _capture_text, _measurement_caption, _preset_text, _search_section, _timing_text, _trained_noise_text, summary_section
 
     results = fake_results()
     results.update(test_scenes=["x"], test_pixels=10, rig="r", grid=[2, 3], exposure_ms=440.0, exposure_ms_source="rig",
@@ -863,6 +868,11 @@ def test_report_text_follows_the_config_that_ran():
     wider = dict(results, pattern_counts=[2, 4])  # learning (and every method) ran at M = 2 only
     text = "\n".join(summary_section(wider, summary_tables(wider)))
     assert "2 learning seeds at M = 2" in text and "every M" not in text and "- M = 4: no method ran at this M." in text
+    # Seed counts that differ per M read as counts, not as seed values.
+    uneven = dict(wider, methods=[*wider["methods"], dict(wider["methods"][3], id="l4", M=4)])
+    text = "\n".join(summary_section(uneven, summary_tables(uneven)))
+    assert "from 2 learning seeds at M = 2, 1 learning seed at M = 4" in text
+    assert _timing_text(dict(results, threads=1)) == ", on 1 thread" and _timing_text(dict(results, threads=2)) == ", on 2 threads"
 
 
 def test_external_and_searched_sets_never_share_a_style_in_one_chart():

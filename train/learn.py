@@ -167,7 +167,8 @@ def initial_patterns(config: TrainConfig, rows: int, cols: int) -> torch.Tensor:
         family = auto_init_family(config.num_patterns)
         if not get_family(family).supports(config.num_patterns, rows, cols):
             raise InputError(f"init 'auto' starts M = {config.num_patterns} from {family}, which does not support it on a "
-                             f"{rows} x {cols} grid; choose a family that does with --init (see displex patterns list --M {config.num_patterns})")
+                             f"{rows} x {cols} grid; set init to a family that does (train's --init, or init in the config's learning settings; "
+                             f"see displex patterns list --M {config.num_patterns})")
         return make_patterns(family, config.num_patterns, rows=rows, cols=cols, seed=config.seed).float()
     if config.init in FAMILIES:
         return make_patterns(config.init, config.num_patterns, rows=rows, cols=cols, seed=config.seed).float()

@@ -75,7 +75,7 @@ def _pixels_per_scene(results: dict) -> int:
 
 def _timing_text(results: dict) -> str:
     workers = results.get("config", {}).get("eval_workers", 1)
-    threads = f"{results['threads']} threads" if "threads" in results else "this process's threads"
+    threads = f"{results['threads']} thread{'s' if results['threads'] != 1 else ''}" if "threads" in results else "this process's threads"
     if workers > 1:
         return f", single-threaded in up to {workers} worker processes sharing the machine (on {threads} when one set is evaluated)"
     return f", on {threads}"
@@ -479,7 +479,7 @@ def summary_section(results: dict, summary: dict) -> list[str]:
             where = "every M" if set(seeds) == set(results["pattern_counts"]) else "M = " + ", ".join(map(str, sorted(seeds)))
             per_m = f"{counts[0]} learning seed{'s' if counts[0] > 1 else ''} at {where}"
         else:
-            per_m = "learning seeds " + ", ".join(f"{seeds[count]} at M = {count}" for count in sorted(seeds))
+            per_m = ", ".join(f"{seeds[count]} learning seed{'s' if seeds[count] > 1 else ''} at M = {count}" for count in sorted(seeds))
         learning = f", learned patterns from {per_m}" + ("" if max(counts) > 1 else " (no seed spread measured)")
     lines += ["", f"Evidence: {len(results['test_scenes'])} test scenes, one noise draw per scene and method (the same draws for "
               f"every method){learning}. A pixel the solver flags invalid (too dark, too few or too similar captures, a fit that "
@@ -585,7 +585,7 @@ def _seed_section(summary: dict) -> list[str]:
     """Test MAE spread of patterns learned with different seeds."""
     if not summary["seed_spread"]:
         return []
-    lines = ["## Seed spread of learned patterns", "", "Test MAE (deg) of patterns learned with different seeds (same config otherwise):", ""]
+    lines = ["## Seed spread of learned patterns", "", "Test MAE (deg) of patterns learned with different seeds (same config otherwise); std: the sample standard deviation over the seeds:", ""]
     body = [[str(s["M"]), f"{s['noise_scale']:g}", ", ".join(map(str, s["seeds"])), _fmt(s["mean"]), _fmt(s["std"]), _fmt(s["min"]), _fmt(s["max"])]
             for s in summary["seed_spread"]]
     return lines + [_table(["M", "noise", "seeds", "mean", "std", "min", "max"], body), ""]

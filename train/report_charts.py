@@ -347,7 +347,7 @@ def write_charts(results: dict, summary: dict, pattern_sets: dict, into: Path, p
     rows = summary["rows"]
     short = f"{len(results['test_scenes'])} test scenes, noise scale {results['default_noise']:g}, analytic PS (OLAT: Woodham); MAE averaged over scenes."
     learned_seeds = [row["seeds"] for row in rows if row["kind"] == "learned"]
-    seeds_note = "" if not learned_seeds else " Learned: mean over seeds, bars = std." if max(learned_seeds) > 1 else " Learned: one seed."
+    seeds_note = "" if not learned_seeds else " Learned: mean over seeds, bars = sample std over seeds." if max(learned_seeds) > 1 else " Learned: one seed."
     save_figure(chart_mae_vs_patterns(rows, short + seeds_note), into / CHARTS["mae_vs_M"])
     save_figure(chart_mae_vs_cost(rows, "capture_seconds", f"capture time (s) = M x {results['exposure_ms']:g} ms x e / e_white", "Accuracy against capture time",
                                   short), into / CHARTS["mae_vs_capture_time"])

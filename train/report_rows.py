@@ -16,6 +16,11 @@ KIND_ORDER = {"learned": 0, "rerender": 1, "search": 2, "external": 3, "heuristi
 """Order of the kinds of method in tables, charts and legends."""
 
 
+def seed_std(values) -> float:
+    """Sample standard deviation (n - 1 in the denominator) of a few seeds' values; 0 for one."""
+    return float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
+
+
 def evaluation_at(method: dict, noise: float) -> dict | None:
     """A method's evaluation at noise scale ``noise`` (a results entry), or None if it has none."""
     for evaluation in method["evaluations"]:
@@ -33,8 +38,9 @@ def aggregate_rows(results: dict, noise: float, specular_free: bool = False) -> 
     Returns:
         rows with series, label, kind, M, seeds (count), cost_seconds (mean), the means of mae,
         median, under_10, invalid_fraction, exposure, capture_seconds, compute_seconds, the median
-        reconstruct_seconds over the methods' evaluations at every noise level, plus
-        mae_std over seeds (0 for one seed); sorted by kind, then M, then MAE.
+        reconstruct_seconds over the methods' evaluations at every noise level (with
+        ``specular_free``: over their specular-free evaluations), plus mae_std, the sample
+        standard deviation over seeds (0 for one seed); sorted by kind, then M, then MAE.
     """
     groups: dict = defaultdict(list)
     for method in results["methods"]:
@@ -54,9 +60,10 @@ def aggregate_rows(results: dict, noise: float, specular_free: bool = False) -> 
         # Wall times of worker processes that share the cores swing by 2x: the median of the
         # methods' test-scene evaluations at every noise level is steadier than one of them.
         # Absent from results of older versions ('-' in the tables).
-        times = [evaluation.get("reconstruct_seconds", math.nan) for method, _ in members for evaluation in method["evaluations"]]
+        timed = [evaluation for _, evaluation in members] if specular_free else [e for method, _ in members for e in method["evaluations"]]
+        times = [evaluation.get("reconstruct_seconds", math.nan) for evaluation in timed]
         row["reconstruct_seconds"] = float(np.median(times)) if times else math.nan
-        row["mae_std"] = float(np.std([evaluation["mae"] for _, evaluation in members]))
+        row["mae_std"] = seed_std([evaluation["mae"] for _, evaluation in members])
         costs = [method["cost_seconds"] for method, _ in members if method["cost_seconds"] is not None]
         row["cost_seconds"] = float(np.mean(costs)) if costs else None
         rows.append(row)
@@ -101,7 +108,7 @@ def summary_tables(results: dict) -> dict:
             if len(values) > 1:
                 maes = np.array([mae for _, mae in values])
                 spread.append({"M": count, "noise_scale": noise, "seeds": [seed for seed, _ in values], "maes": maes.tolist(),
-                               "mean": float(maes.mean()), "std": float(maes.std()), "min": float(maes.min()), "max": float(maes.max())})
+                               "mean": float(maes.mean()), "std": seed_std(maes), "min": float(maes.min()), "max": float(maes.max())})
     comparisons.sort(key=lambda c: (c["M"], c["noise_scale"]))
     spread.sort(key=lambda s: (s["M"], s["noise_scale"]))
     rerender.sort(key=lambda r: (r["M"], r["noise_scale"]))
