@@ -121,6 +121,9 @@ def test_config_errors(scenes):
         tiny_config(scenes, solver={"max_alternations": 0})
     with pytest.raises(InputError, match="eval_workers"):
         tiny_config(scenes, eval_workers=0)
+    for table in ("learned_at", "learned_seeds_at"):  # named with the config, like every other error
+        with pytest.raises(InputError, match=f"^compare config: {table} keys must be integers \\(M\\), got x"):
+            tiny_config(scenes, **{table: {"x": {}}})
     with pytest.raises(InputError, match="learned: unknown key\\(s\\) stepz"):  # even with nothing learned
         tiny_config(scenes, learned={"stepz": 5}, learned_counts=[], rerender_counts=[])
     with pytest.raises(InputError, match="learned: steps"):  # a shared value that every M's table overrides

@@ -307,7 +307,7 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
             raise
         raise InputError(f"{source}: [[search]] and [[external]] must be arrays of tables") from None
     if "learned_at" in values:
-        values["learned_at"] = _int_keys(values["learned_at"], "learned_at")
+        values["learned_at"] = _int_keys(values["learned_at"], f"{source}: learned_at")
         for count, table in values["learned_at"].items():
             if not isinstance(table, dict):
                 raise InputError(f"{source}: learned_at.{count} must be a table of learning settings ([learned_at.{count}]), got {table!r}")
@@ -315,7 +315,7 @@ def compare_config_from_dict(values: dict, root: Path | None = None, source: str
         if not isinstance(values.get(key, {}), dict):
             raise InputError(f"{source}: {key} must be a table ([{key}])")
     if "learned_seeds_at" in values:
-        seeds_at = _int_keys(values["learned_seeds_at"], "learned_seeds_at")
+        seeds_at = _int_keys(values["learned_seeds_at"], f"{source}: learned_seeds_at")
         for count, seeds in seeds_at.items():
             if not isinstance(seeds, (list, tuple)):  # the seeds themselves: CompareConfig (check_seed)
                 raise InputError(f"{source}: learned_seeds_at.{count} must be a list of integer seeds, got {seeds!r}")
