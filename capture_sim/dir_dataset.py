@@ -251,7 +251,12 @@ def _require_files(paths: list[Path], folder: Path) -> None:
 
 
 def _pms_image_paths(folder: Path, num_lights: int) -> list[Path]:
-    names = [line.strip() for line in (folder / "filenames.txt").read_text().splitlines() if line.strip()]
+    path = folder / "filenames.txt"
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"{path}: not a readable list of image names ({err})") from None
+    names = [line.strip() for line in text.splitlines() if line.strip()]
     if len(names) != num_lights:
         raise InputError(f"{folder / 'filenames.txt'}: lists {len(names)} images, the rig has {num_lights} lights")
     return [folder / name for name in names]
@@ -353,10 +358,11 @@ def _load_npy(path: Path) -> np.ndarray:
 
 def _load_mat_normals(path: Path) -> np.ndarray:
     from scipy.io import loadmat
+    from scipy.io.matlab import MatReadError
 
     try:
         contents = loadmat(path)
-    except (OSError, ValueError, NotImplementedError) as err:
+    except (OSError, ValueError, NotImplementedError, MatReadError) as err:
         raise InputError(f"{path}: not a readable .mat file ({err})") from None
     if "Normal_gt" in contents:
         return np.asarray(contents["Normal_gt"], dtype=np.float64)

@@ -25,7 +25,8 @@ MIN_DEPTH_M = 1e-3
 solvers' default ``min_distance``, so every pixel would be flagged bad geometry)."""
 MAX_DEPTH_M = 20.0
 """Metres: objects sit about half a metre from the camera, so a median depth above this can only be
-another unit (millimetres), refused in scene files and converted by the DIR loader."""
+another unit (millimetres), refused in scene files and converted by the DIR loader; no pixel inside
+the mask may lie farther either."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -176,6 +177,13 @@ def validate_scene(scene: Scene) -> None:
         median = float(np.median(scene.depth[scene.mask]))
         if median > MAX_DEPTH_M:
             raise InputError(f"{name}: depth must be in metres, but its median inside the mask is {median:g} (millimetres?)")
+        # One far outlier (an unset or background value inside the mask) would otherwise reach the
+        # light field as a distance the falloff cannot serve, or quietly as a wrong light direction.
+        farthest = float(scene.depth[scene.mask].max())
+        if farthest > MAX_DEPTH_M:
+            count = int((scene.depth[scene.mask] > MAX_DEPTH_M).sum())
+            raise InputError(f"{name}: depth must be at most {MAX_DEPTH_M:g} m inside the mask, but {count} pixel{'s' if count > 1 else ''} "
+                             f"reach{'' if count > 1 else 'es'} {farthest:g} m (an unset or background value inside the mask?)")
     for key in ("diffuse", "specular"):
         stack = getattr(scene, key)
         if stack is not None:

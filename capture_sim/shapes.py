@@ -560,6 +560,10 @@ class Cylinder(Shape):
 SHAPES: tuple[str, ...] = ("sphere", "ellipsoid", "capsule", "blob", "torus", "bowl", "relief", "vase", "cylinder")
 
 
+SHAPE_DISTANCES_M = (0.2, 5.0)
+"""Range of the distances (metres) at which shapes are built: the sizes and poses are made for it."""
+
+
 def make_shape(name: str, seed: int = 0, distance: float = 0.5) -> Shape:
     """Build one of ``SHAPES`` about ``distance`` metres in front of the camera.
 
@@ -577,8 +581,8 @@ def make_shape(name: str, seed: int = 0, distance: float = 0.5) -> Shape:
     if name not in SHAPES:
         raise InputError(f"unknown shape {name!r}; choose from {', '.join(SHAPES)}")
     check_seed("seed", seed)
-    if not 0.2 <= distance <= 5.0:
-        raise InputError(f"shape distance must be 0.2..5 m, got {distance}")
+    if not SHAPE_DISTANCES_M[0] <= distance <= SHAPE_DISTANCES_M[1]:
+        raise InputError(f"shape distance must be {SHAPE_DISTANCES_M[0]:g}..{SHAPE_DISTANCES_M[1]:g} m, got {distance}")
     rng = np.random.default_rng([int(seed), 11])
     center = np.array([0.0, 0.0, distance])
     if name == "sphere":

@@ -30,7 +30,7 @@ from capture_sim.materials import MATERIALS, make_material
 from capture_sim.render import render_olat
 from capture_sim.rig import Rig
 from capture_sim.scene import Scene, save_scene
-from capture_sim.shapes import SHAPES, cast_camera_rays, make_shape, shadow_visibility
+from capture_sim.shapes import SHAPE_DISTANCES_M, SHAPES, cast_camera_rays, make_shape, shadow_visibility
 
 GENERATOR = "displex.synth"
 
@@ -105,6 +105,10 @@ def synthesize_scene(
         raise InputError(f"unknown shape {shape!r}; choose from {', '.join(SHAPES)}")
     if material not in MATERIALS:
         raise InputError(f"unknown material {material!r}; choose from {', '.join(MATERIALS)}")
+    near, far = SHAPE_DISTANCES_M
+    if not near <= rig.working_distance <= far:
+        raise InputError(f"rig {rig.name}: synthetic objects are placed at the rig's working_distance, "
+                         f"{rig.working_distance:g} m, which must be {near:g}..{far:g} m for scene synthesis")
     height, width = scene_size(rig, height, width)
     check_scene_aspect(rig, height, width)
     camera_rig = rig.with_resolution(height, width)

@@ -248,6 +248,15 @@ def test_bad_content_raises(tmp_path, rig):
     (folder / "main" / "diffuseNspecular" / "003.png").write_bytes(b"not a png")
     with pytest.raises(InputError, match="003.png"):
         load_dir_object(folder, rig)
+    # Text in another encoding, and a truncated .mat file, raised their libraries' own errors.
+    folder = _make_pms(tmp_path / "K")
+    (folder / "filenames.txt").write_bytes("\n".join(f"{i:03d}é.png" for i in range(144)).encode("latin-1"))
+    with pytest.raises(InputError, match="filenames.txt: not a readable list of image names"):
+        load_dir_object(folder, rig)
+    folder = _make_pms(tmp_path / "L")
+    (folder / "Normal_gt.mat").write_bytes((folder / "Normal_gt.mat").read_bytes()[:300])
+    with pytest.raises(InputError, match="Normal_gt.mat: not a readable .mat file"):
+        load_dir_object(folder, rig)
 
 
 def test_olat_count_must_match_the_rig(basic_folder):

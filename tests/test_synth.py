@@ -428,6 +428,10 @@ def test_scene_validation_refuses_flipped_normals_bad_intrinsics_and_bad_meta(tm
         validate_scene(dataclasses.replace(scene, K_cam=elsewhere))
     with pytest.raises(InputError, match="depth must be in metres, but its median inside the mask is 4.*millimetres"):
         validate_scene(dataclasses.replace(scene, depth=scene.depth * 1000))
+    far = scene.depth.copy()
+    far[np.nonzero(scene.mask)[0][0], np.nonzero(scene.mask)[1][0]] = 1e30  # one unset pixel: the falloff was blamed
+    with pytest.raises(InputError, match="depth must be at most 20 m inside the mask, but 1 pixel reaches 1e\\+30 m"):
+        validate_scene(dataclasses.replace(scene, depth=far))
     from capture_sim.scene import rig_for_scene
 
     with pytest.raises(InputError, match="its light positions are rig .*'s in millimetres; scene files use metres"):
@@ -542,3 +546,13 @@ def test_default_scene_size_follows_the_rig_camera_and_odd_aspects_are_warned(ri
         for bad in ((0, 14), (1, 14), (12,), (12, 14, 3)):
             with pytest.raises(InputError, match="scene_size must be (two whole numbers of at least 2|a list of 2 values)"):
                 build(bad)
+
+
+def test_a_working_distance_synthesis_cannot_place_objects_at_is_named_as_the_rigs(rig):
+    """The rig loads (its working distance only needs to be positive), but the shapes are made for
+    0.2..5 m: the error named a 'shape distance' the user never set."""
+    import dataclasses
+
+    for distance in (0.1, 10.0):
+        with pytest.raises(InputError, match=f"rig {rig.name}: synthetic objects are placed at the rig's working_distance, {distance:g} m, which must be 0.2..5 m"):
+            synthesize_scene("sphere", "lambertian", dataclasses.replace(rig, working_distance=distance), height=12, width=14)
