@@ -308,7 +308,7 @@ class PatternEvaluator:
             moments.write(start, stop, normalised_moments(vectors, captures, weight, scale), vectors)
         return moments
 
-    def lit_condition(self, normal, albedo, condition, kink_tolerance_deg: float):
+    def lit_condition(self, normal, albedo, condition, kink_tolerance_deg: float, condition_of=normal_condition):
         """Condition numbers (N,) of the normals (3, N) and albedo (3, N) of all N pixels without
         the equations of patterns that leave superpixels dark where they sit at a kink: a zero
         capture (clipped, or below zero after dark-frame subtraction) whose lighting vector lies
@@ -325,7 +325,8 @@ class PatternEvaluator:
         ordinary noisy scenes (tri_complementary M = 2 on the demo's test scenes: 62 more invalid
         pixels, with a median error of 5 deg before, and 0.27 deg more MAE). The result is never
         below ``condition`` (N,), that of every equation; pixels without such an equation keep it
-        with no extra work.
+        with no extra work. ``condition_of`` (normal, albedo, moment) -> condition numbers is the
+        solver's own (Woodham's per-channel one, for instance).
         """
         num_patterns = self.captures.shape[0]
         emission = self.lighting.reshape(-1, num_patterns, 3, 4)[..., 3]  # (K, M, 3): E[m, k, c]
@@ -342,7 +343,7 @@ class PatternEvaluator:
             kink = take_pixels(zero, pixels) & (facing <= kink_cos * vectors.norm(dim=2))
             weight = take_pixels(self.equation_weight, pixels) * ~kink
             moments = normalised_moments(vectors, take_pixels(self.captures, pixels), weight, self.capture_scale[pixels])
-            condition[pixels] = torch.maximum(condition[pixels], normal_condition(pixel_normal, albedo[:, pixels], moments.moment))
+            condition[pixels] = torch.maximum(condition[pixels], condition_of(pixel_normal, albedo[:, pixels], moments.moment))
         return condition
 
 NEAR_FIXED_POINT = 0.2

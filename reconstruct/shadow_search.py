@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
-from reconstruct.pixel_solve import Moments, albedo_step, normal_condition, residual, tangent_basis, unit
+from reconstruct.pixel_solve import Moments, albedo_step, normal_condition, relative_residual, residual, tangent_basis, unit
 
 
 @dataclass(eq=False)
@@ -157,7 +157,8 @@ def restart_normals(view: torch.Tensor) -> list[torch.Tensor]:
     return starts
 
 
-def restarted_search(evaluator, fit, initial_albedo, view, config) -> tuple[ShadowSearch, torch.Tensor]:
+def restarted_search(evaluator, fit, initial_albedo, view, config, condition_of=normal_condition,
+                     restart_residual: float | None = None) -> tuple[ShadowSearch, torch.Tensor]:
     """``shadow_search`` from the view directions, restarted where the result is doubtful.
 
     With ill-conditioned pattern sets or near silhouettes a search can settle on a wrong
@@ -169,13 +170,22 @@ def restarted_search(evaluator, fit, initial_albedo, view, config) -> tuple[Shad
         evaluator, fit, initial_albedo, config: as ``shadow_search`` (config also needs
             ``restart_condition``).
         view: (3, N) unit view directions, the first starting normals.
+        condition_of: (normal (3, n), albedo (3, n), moment (3, 6, n)) -> (n,) condition numbers
+            of the fit's model (default: the joint model's ``normal_condition``).
+        restart_residual: if given, pixels whose relative residual (``relative_residual``)
+            exceeds it are searched again too: a fit that matches its captures exactly for every
+            mask (Woodham's per-channel fit with three captures a channel) settles on wrong
+            masks at good condition numbers, which only the residual of the shared normal shows.
 
     Returns:
         (state, condition (N,)) with the condition numbers of the chosen normals.
     """
     state = shadow_search(evaluator, fit, initial_albedo, view, config)
-    condition = normal_condition(state.normal, state.albedo, state.moments.moment)
-    doubtful = torch.nonzero((condition > config.restart_condition) | ~state.converged).squeeze(1)
+    condition = condition_of(state.normal, state.albedo, state.moments.moment)
+    doubtful = (condition > config.restart_condition) | ~state.converged
+    if restart_residual is not None:
+        doubtful |= relative_residual(state.normal, state.moments) > restart_residual
+    doubtful = torch.nonzero(doubtful).squeeze(1)
     if doubtful.numel() == 0:
         return state, condition
     starts = restart_normals(view[:, doubtful])
@@ -184,5 +194,5 @@ def restarted_search(evaluator, fit, initial_albedo, view, config) -> tuple[Shad
     best_objective, best_start = attempts.objective.reshape(len(starts), -1).min(dim=0)
     better = torch.nonzero(best_objective < state.objective[doubtful]).squeeze(1)
     state.take(doubtful[better], attempts, best_start[better] * doubtful.numel() + better)
-    condition[doubtful] = normal_condition(state.normal[:, doubtful], state.albedo[:, doubtful], state.moments.moment[..., doubtful])
+    condition[doubtful] = condition_of(state.normal[:, doubtful], state.albedo[:, doubtful], state.moments.moment[..., doubtful])
     return state, condition

@@ -138,6 +138,17 @@ def test_evaluate_warns_when_every_pixel_is_invalid(tmp_path, scene_file, capsys
     assert "warning: every pixel of blob-svbrdf-s3 is flagged invalid" in capsys.readouterr().err
 
 
+def test_evaluate_warns_that_woodham_solves_the_channels_of_a_colour_set_alone(tmp_path, scene_file, capsys):
+    from patterns.families import make_patterns
+
+    for family, warned in (("tri_gradient", True), ("mono_gradient", False)):
+        path = tmp_path / f"{family}.npy"
+        np.save(path, make_patterns(family, 4).numpy())
+        capsys.readouterr()
+        assert run(["evaluate", "--patterns", str(path), "--scenes", str(scene_file), "--method", "woodham"]) == 0
+        assert ("warning: Woodham solves each colour channel on its own" in capsys.readouterr().err) == warned, family
+
+
 def test_scene_black_inside_its_mask_is_reported(tmp_path, scene_file, capsys):
     """A scene lit only outside its mask (a wrong mask, a failed capture) is named by every command
     that prepares scenes; a lit scene is not."""
@@ -262,6 +273,8 @@ def test_unusable_inputs_are_named(tmp_path, scene_file, capsys):
          "share the file name"),
         (["evaluate", "--patterns", "olat", "--scenes", str(scene_file), str(scene_file), "--out", str(tmp_path / "e")],
          f"scene file {scene_file} is given twice"),
+        # Without --out too: the scene counted twice in the mean, with another noise draw.
+        (["evaluate", "--patterns", "olat", "--scenes", str(scene_file), str(scene_file.parent)], "is given twice"),
         (["train", "--M", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "t.npz")], "init 'auto' starts M = 1"),
         (["import-frames", str(good), "--out", str(tmp_path / "i.npz")], "not a folder of exported frames"),
         (["search", "--family", "tri_random", "--M", "50", "--maxeval", "2", "--scenes", str(scene_file), "--out", str(tmp_path / "s.npz")],

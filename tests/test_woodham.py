@@ -113,3 +113,52 @@ def test_float32_diagonal_emission_is_detected_as_olat(exposure):
 def test_no_lights_is_refused():
     with pytest.raises(InputError, match="at least one light"):
         solve_woodham(torch.rand(3, 2, 3), torch.rand(3, 0, 3), torch.tensor([[0.0, 0.0, 0.5]] * 2), torch.zeros(0, 3), Falloff())
+
+
+def _valid_errors(result, sphere):
+    from reconstruct.metrics import angular_error_deg
+
+    valid = result.valid & sphere.mask
+    return valid, angular_error_deg(result.normal, sphere.normal)[valid]
+
+
+@pytest.mark.parametrize("peak", [1.5, 3.0])
+def test_a_channel_that_saturation_leaves_under_three_patterns_is_left_out(sphere, peak):
+    """Grey patterns, over-exposed: the red channel (the brightest albedo) keeps fewer than three
+    unsaturated captures where green and blue keep four. Its damped solve returned some vector of
+    an unconstrained family and the summed normal was off by up to 57 (84) deg, valid."""
+    captures, emission = capture(sphere, emission_of(sphere, load_patterns("initial_mono_gradient")), peak=peak)
+    result = solve_woodham_image(captures.clamp(max=1.0), emission, sphere.points, sphere.mask, sphere.lights, Falloff())
+    valid, errors = _valid_errors(result, sphere)
+    assert int(valid.sum()) > 0.6 * int(sphere.mask.sum()) and (result.flags["saturated"] & sphere.mask).sum() > 400
+    assert float(errors.max()) < LIMIT_OLAT_DEG
+
+
+def test_colour_sets_use_the_channels_that_fix_the_normal_and_flag_pixels_none_does(sphere):
+    """Woodham solves each channel alone: a channel lit the same way by every pattern, or by two
+    distinct patterns, cannot fix g_c = a_c n (off by up to 118 deg, valid). Left out where another
+    channel can; a pixel no channel determines alone is ill_conditioned (solve_ps couples them)."""
+    from patterns.families import make_patterns
+
+    grey = load_patterns("initial_mono_gradient")
+    constant_red = grey.clone()
+    constant_red[..., 0] = 0.7
+    two_each = grey.clone()
+    two_each[..., 0], two_each[..., 1], two_each[..., 2] = grey[[0, 1, 0, 1], :, 0], grey[[2, 3, 2, 3], :, 1], grey[[0, 2, 0, 2], :, 2]
+    # Three patterns: a wrong shadow mask fits each channel exactly; the shared normal's residual
+    # shows it and the pixel is searched again (27 valid pixels were 12-109 deg off).
+    tri_gradient = make_patterns("tri_gradient", 3).double().reshape(3, -1, 3)
+    for patterns, determined in ((constant_red, True), (tri_gradient, True), (two_each, False)):
+        captures, emission = capture(sphere, emission_of(sphere, patterns))
+        result = solve_woodham_image(captures, emission, sphere.points, sphere.mask, sphere.lights, Falloff())
+        valid, errors = _valid_errors(result, sphere)
+        if determined:
+            assert bool(valid[sphere.mask].all()) and float(errors.max()) < LIMIT_OLAT_DEG
+        else:
+            assert not valid.any() and bool(result.flags["ill_conditioned"][sphere.mask].all())
+
+
+def test_exposure_of_the_olat_entry_point_is_a_number(sphere):
+    index = torch.nonzero(sphere.mask.reshape(-1)).squeeze(1)[:10]
+    with pytest.raises(InputError, match="exposure must be a positive number, got True"):
+        solve_woodham_olat(sphere.olat.reshape(144, -1, 3)[:, index], sphere.points.reshape(-1, 3)[index], sphere.lights, Falloff(), exposure=True)

@@ -59,6 +59,11 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
         values, _ = load_patterns(config.patterns)
         check_patterns_match_rig(values, rig.rows, rig.cols, rig.name, config.patterns)
         patterns = torch.as_tensor(values)
+        if config.method == "woodham" and not bool((patterns == patterns[..., :1]).all()):
+            warnings.warn("Woodham solves each colour channel on its own, and a colour pattern set lights each channel differently: "
+                          "a channel with fewer than three independent patterns is left out (a pixel no channel determines is flagged), "
+                          "and with three a wrong shadow mask can fit a channel exactly; --method ps solves the channels together",
+                          DisplexWarning, stacklevel=2)
     settings = EvalSettings(method=config.method, noise_scale=0.0 if config.noise == "off" else 1.0, exposure=parse_exposure(str(config.exposure), rig), seed=config.seed)
     json_path = separate_json(config.json, config.out, "results.json")
     known_inputs = [("pattern file", None if config.patterns == "olat" else config.patterns), ("rig file", rig_file(config.rig))]
@@ -70,8 +75,7 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
         require_ground_truth(scene)
         rig_for_scene(rig, scene)
     files = [Path(scene.meta.get("file", scene.name)) for scene in scenes]
-    if config.out is not None:
-        _refuse_clashing_outputs(files)
+    _refuse_repeated_scenes(files, config.out is not None)
     # Every output is checked before the work: none may replace an input or another output.
     refuse_overwriting([("--json", json_path), *_out_files(config.out, files)], [("scene file", file) for file in files] + known_inputs,
                        folders=[("--out", config.out)])
@@ -150,16 +154,18 @@ def _evaluate_scenes(config: EvaluateConfig, scenes, files, rig, patterns, setti
     return document
 
 
-def _refuse_clashing_outputs(files: list[Path]) -> None:
-    """Refuse scene files whose per-scene outputs (named by the file stem) would overwrite each other."""
-    seen: dict = {}
+def _refuse_repeated_scenes(files: list[Path], writes_maps: bool) -> None:
+    """Refuse a scene file given twice (it would count twice in the mean, with another noise
+    draw), and, if per-scene maps are written (``writes_maps``), scene files whose maps (named
+    by the file stem) would overwrite each other."""
+    resolved, stems = set(), set()
     for file in files:
-        earlier = seen.setdefault(file.stem, file)
-        if earlier is file:
-            continue
-        if earlier.resolve() == file.resolve():
+        if file.resolve() in resolved:
             raise InputError(f"the scene file {file} is given twice (directly or through its folder)")
-        raise InputError(f"scenes from different folders share the file name {file.stem}: their outputs in --out would overwrite each other")
+        if writes_maps and file.stem in stems:
+            raise InputError(f"scenes from different folders share the file name {file.stem}: their outputs in --out would overwrite each other")
+        resolved.add(file.resolve())
+        stems.add(file.stem)
 
 
 ERROR_MAP_MAX_DEG = 45.0
