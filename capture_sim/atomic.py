@@ -74,7 +74,7 @@ def _check_writable(path: Path, probed: set) -> None:
     try:
         handle, name = tempfile.mkstemp(prefix=".displex-probe.", dir=folder)
     except OSError as err:
-        raise InputError(f"cannot write {path}: {err.strerror or err}") from None
+        raise InputError(f"cannot write {requested}: {err.strerror or err}") from None
     os.close(handle)
     os.unlink(name)
 
@@ -134,14 +134,18 @@ def atomic_path(path: str | Path, suffix: str = "", sync: bool = False):
     old or the new content, never a truncated file (used for checkpoints that runs resume from;
     it costs a disk flush per file).
     """
-    path = Path(path)
-    check_replaceable(path)
+    requested = Path(path)
+    check_replaceable(requested)
+    # In the physical parent folder: 'a/b/../../p.npz' needs no folder a/b (creating the parents
+    # as written left a/ and a/b/ behind). The last component stays as given (a symlink there is
+    # replaced, not its target).
+    path = Path(os.path.realpath(requested.parent)) / requested.name
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or ".tmp", dir=path.parent)
     except OSError as err:
         # Name the path the caller asked for, not the temporary file.
-        raise InputError(f"cannot write {path}: {err.strerror or err}") from None
+        raise InputError(f"cannot write {requested}: {err.strerror or err}") from None
     os.close(handle)
     # mkstemp makes the file owner-only; give it the permissions a plain open() would.
     umask = os.umask(0)

@@ -2,6 +2,7 @@ import json
 import io
 import struct
 import zlib
+from pathlib import Path
 
 import matplotlib.image as mpimg
 import numpy as np
@@ -227,3 +228,17 @@ def test_a_pattern_file_named_in_capitals_is_one_to_start_from():
     from patterns.io import names_pattern_file
 
     assert names_pattern_file("learned.NPZ") and names_pattern_file("p.Npy") and not names_pattern_file("tri_gradient")
+
+
+def test_an_output_path_through_missing_folders_and_back_creates_none(tmp_path, monkeypatch):
+    """'a/b/../../p.npz' is p.npz: the parents as written (a/, a/b/) were created and left behind.
+    A symlink as the output is replaced by the file, as before; its target is left alone."""
+    from capture_sim.atomic import write_json
+
+    monkeypatch.chdir(tmp_path)
+    save_patterns(Path("a/b/../../p.npz"), np.zeros((2, 9, 16, 3), dtype=np.float32))
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["p.npz"]
+    (tmp_path / "target.json").write_text("{}")
+    (tmp_path / "link.json").symlink_to(tmp_path / "target.json")
+    write_json(Path("link.json"), {"x": 1})
+    assert not (tmp_path / "link.json").is_symlink() and (tmp_path / "target.json").read_text() == "{}"
