@@ -199,6 +199,11 @@ GAMMA_RANGE = (0.1, 10.0)
 every set value below 1 to nothing without failing anywhere downstream."""
 
 
+MAX_BIT_DEPTH = 16
+"""Sensor bits at most: the float32 captures hold every level of 16 bits exactly apart, but not
+of 24 (2^24 - 1 levels are as fine as float32's spacing near 1, so neighbouring levels merged)."""
+
+
 @dataclass(frozen=True, eq=False)
 class Rig:
     """A display-camera rig (DESIGN sections 2 and 3).
@@ -250,8 +255,8 @@ class Rig:
             )
         if self.exposure is not None and not (self.exposure > 0 and math.isfinite(self.exposure)):
             raise InputError(f"rig {self.name}: exposure must be positive or auto")
-        if self.bit_depth is not None and not (isinstance(self.bit_depth, numbers.Integral) and not isinstance(self.bit_depth, bool) and 1 <= self.bit_depth <= 24):
-            raise InputError(f"rig {self.name}: bit_depth must be a whole number in 1..24 or none, got {self.bit_depth!r}")
+        if self.bit_depth is not None and not (isinstance(self.bit_depth, numbers.Integral) and not isinstance(self.bit_depth, bool) and 1 <= self.bit_depth <= MAX_BIT_DEPTH):
+            raise InputError(f"rig {self.name}: bit_depth must be a whole number in 1..{MAX_BIT_DEPTH} or none, got {self.bit_depth!r}")
         if not (math.isfinite(self.working_distance) and self.working_distance > 0):
             raise InputError(f"rig {self.name}: working_distance must be a positive number of metres, got {self.working_distance!r}")
         if self.panel_pixels is not None:

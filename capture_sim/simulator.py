@@ -32,7 +32,7 @@ import torch
 
 from capture_sim.display import display_emission
 from capture_sim.errors import InputError, check_array
-from capture_sim.rig import NoiseModel, Rig
+from capture_sim.rig import MAX_BIT_DEPTH, NoiseModel, Rig
 
 AUTO_EXPOSURE_PERCENTILE = 99.9
 AUTO_EXPOSURE_TARGET = 0.9
@@ -250,11 +250,11 @@ def sensor(
         (...) captures in [0, 1], same shape as ``signal``, in its dtype or float32 if narrower.
 
     Raises:
-        InputError: a bit depth outside 1..24, or a generator that is not a ``torch.Generator``.
+        InputError: a bit depth outside 1..16 (``rig.MAX_BIT_DEPTH``), or a generator that is not a ``torch.Generator``.
         Values are not scanned (a hot path of learning; ``simulate`` checks its inputs).
     """
-    if bit_depth is not None and not (isinstance(bit_depth, numbers.Integral) and not isinstance(bit_depth, bool) and 1 <= bit_depth <= 24):
-        raise InputError(f"bit_depth must be None or a whole number in 1..24, got {bit_depth!r}")
+    if bit_depth is not None and not (isinstance(bit_depth, numbers.Integral) and not isinstance(bit_depth, bool) and 1 <= bit_depth <= MAX_BIT_DEPTH):
+        raise InputError(f"bit_depth must be None or a whole number in 1..{MAX_BIT_DEPTH}, got {bit_depth!r}")
     if generator is not None and not isinstance(generator, torch.Generator):
         raise InputError(f"generator must be a torch.Generator (e.g. torch.Generator().manual_seed(0)) or None, got {generator!r}")
     # At least float32: float16's smallest normal (6e-5) is a variance floor far above the read

@@ -134,9 +134,14 @@ def test_rig_and_noise_model_number_types():
     assert NoiseModel(np.float32(1e-4), np.float64(5e-4)).shot == pytest.approx(1e-4)
     rig = load_rig()
     assert dataclasses.replace(rig, bit_depth=np.int64(10)).bit_depth == 10
-    for bad in (12.5, True, 0, 25):
-        with pytest.raises(InputError, match="bit_depth must be a whole number"):
+    for bad in (12.5, True, 0, 17, 24):  # 24 bits: neighbouring levels merged in float32
+        with pytest.raises(InputError, match="bit_depth must be a whole number in 1..16"):
             dataclasses.replace(rig, bit_depth=bad)
+    assert dataclasses.replace(rig, bit_depth=16).bit_depth == 16
+    levels = sensor(torch.arange(65536, dtype=torch.float64) / 65535, None, bit_depth=16).float()
+    assert torch.unique(levels).numel() == 65536  # every 16-bit level stays distinct in float32
+    with pytest.raises(InputError, match="bit_depth must be None or a whole number in 1..16, got 24"):
+        sensor(levels, None, bit_depth=24)
 
 
 def test_rig_file_with_both_light_positions_and_a_panel_is_refused(tmp_path):
