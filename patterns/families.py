@@ -134,10 +134,13 @@ class Family:
         self.check(num_patterns, rows, cols)
         if preset not in PRESETS:
             raise InputError(f"unknown preset {preset!r}; presets: {', '.join(PRESETS)}")
-        seed = check_seed("seed", seed)
+        return self._named_parameters(int(num_patterns), int(rows), int(cols), preset, check_seed("seed", seed))
+
+    def _named_parameters(self, num_patterns: int, rows: int, cols: int, preset: str, seed: int) -> list[Parameter]:
+        """``_parameters``, with the family and M in its errors (a grid too small for a pattern)."""
         try:
-            return self._parameters(int(num_patterns), int(rows), int(cols), preset, seed)
-        except InputError as err:  # a grid too small for a pattern: say which family and M
+            return self._parameters(num_patterns, rows, cols, preset, seed)
+        except InputError as err:
             raise InputError(f"{self.name}: M = {num_patterns}: {err}") from None
 
     def bounds(self, num_patterns: int, rows: int = 9, cols: int = 16) -> tuple[np.ndarray, np.ndarray]:
@@ -185,7 +188,7 @@ class Family:
 
     @functools.lru_cache(maxsize=32)
     def _bounds(self, num_patterns: int, rows: int, cols: int) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
-        params = self._parameters(num_patterns, rows, cols, "default", 0)
+        params = self._named_parameters(num_patterns, rows, cols, "default", 0)
         low = np.array([p.low for p in params], dtype=np.float64)
         high = np.array([p.high for p in params], dtype=np.float64)
         return low, high, tuple(p.name for p in params)
@@ -764,9 +767,12 @@ def make_patterns(
         (M, R, C, 3) float32 display set values in [0, 1].
 
     Raises:
-        InputError: besides bad arguments, a set with two identical patterns (a grid too small for
-            the family at this M, e.g. top/bottom halves on a single row): a capture would repeat
-            another and the set could not give M independent measurements.
+        InputError: besides bad arguments, a grid too small for the family at this M: a set with
+            two identical patterns (a capture would repeat another and the set could not give M
+            independent measurements), or one whose ramps or splits run across a single row or
+            column (top/bottom halves or vertical ramps on a 1 x N grid are flat, in every
+            channel for the grey families and in one for the colour ones; a line of lights cannot
+            fix a normal in any case).
 
     Example:
         >>> make_patterns("olat", 4, preset="ddps")[0, 0, 15, 0].item()  # top-right corner lit

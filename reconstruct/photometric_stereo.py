@@ -114,8 +114,10 @@ class SolverSettings:
     Both thresholds assume exposed captures in [0, 1] (scale a raw OLAT stack first, see
     ``solve_woodham``)."""
     condition_threshold: float = 1e4
-    """Pixels whose normal condition number (``pixel_solve.normal_condition``, roughly the squared
-    noise amplification of the normal) exceeds this are flagged ill_conditioned."""
+    """Pixels whose normal condition number (roughly the squared noise amplification of the
+    normal: ``pixel_solve.normal_condition`` for ``solve_ps``, ``woodham.woodham_condition`` for
+    Woodham, where it also decides which channels enter the normal) exceeds this are flagged
+    ill_conditioned."""
     min_distance: float = 1e-3
     """Metres; light distances are clamped to at least this, and points within it of a
     superpixel or not in front of the camera (z <= min_distance) are flagged bad_geometry."""
@@ -186,7 +188,8 @@ class PSResult:
             inside the mask for image solves). Saturated and not-converged pixels stay valid: their
             flags say that the estimate is degraded, not meaningless (not-converged ones far from
             a fixed point carry no gradient, see ``solve_ps``).
-        condition: (...) normal condition number (``pixel_solve.normal_condition``), in
+        condition: (...) normal condition number (``pixel_solve.normal_condition``; Woodham's:
+            ``woodham.woodham_condition``), in
             [1, CONDITION_CAP] (without the zero captures at a kink of patterns that leave
             superpixels exactly dark: ``PatternEvaluator.lit_condition``).
         residual: (...) RMS residual of the Lambertian fit relative to the RMS capture, in [0, 1],

@@ -69,8 +69,10 @@ class WoodhamConfig(SolverSettings):
 
 def channel_conditions(normal: torch.Tensor, moment: torch.Tensor) -> torch.Tensor:
     """(3, N) condition numbers of each channel's own fit g_c = a_c n at the normals (3, N):
-    ``normal_condition`` of one channel's moments (3, 6, N) with its albedo free; CONDITION_CAP
-    where the channel has fewer than three independent equations."""
+    ``normal_condition`` of one channel's moments (3, 6, N) with its albedo free. A channel with
+    fewer than three independent equations gets CONDITION_CAP in float64, but only about 1e6 to
+    1e7 in float32 (rounding leaves a small eigenvalue): a ``condition_threshold`` that high lets
+    such channels into the normal."""
     ones = torch.ones((1, normal.shape[1]), dtype=normal.dtype)
     return torch.stack([normal_condition(normal, ones, moment[channel : channel + 1]) for channel in range(3)])
 

@@ -248,7 +248,11 @@ def test_import_refuses_a_manifest_whose_play_order_or_numbering_was_edited(tmp_
     def olat_before_patterns(copy):
         copy["frames"] = copy["frames"][-1:] + copy["frames"][:-1]
 
+    def forged_grid(copy):  # compared light by light: the grid's 4e8 lights are never listed
+        copy.update(rows=20_000, cols=20_000, panel_pixels=[20_000, 20_000])
+
     cases = ((swap_indices, "pattern frames \\[1, 0\\] in play order"), (relabel_olat, "OLAT frames do not list"),
+             (forged_grid, "OLAT frames do not list the 20000 x 20000 grid's lights"),
              (white_as_olat, "no whole-number light"), (unknown_kind, "kind 'foo'"), (olat_before_patterns, "play order"))
     for change, message in cases:
         edited(change)

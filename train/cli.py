@@ -532,10 +532,11 @@ def _patterns_list(args) -> None:
         if not family.supports(args.num_patterns, rig.rows, rig.cols):
             print(f"{name:<20} (not defined for M={args.num_patterns} on {rig.rows} x {rig.cols}) {family.summary}")
             continue
-        try:  # the count rule allows it, but on a small grid some patterns may repeat others
+        try:  # the count rule allows it, but on a small grid patterns may repeat others or be flat
             make_patterns(name, args.num_patterns, rig.rows, rig.cols)
-        except InputError:
-            print(f"{name:<20} (identical patterns for M={args.num_patterns} on {rig.rows} x {rig.cols}) {family.summary}")
+        except InputError as error:
+            reason = "identical patterns" if "identical patterns" in str(error) else "flat patterns: a single row or column across a direction"
+            print(f"{name:<20} ({reason} for M={args.num_patterns} on {rig.rows} x {rig.cols}) {family.summary}")
             continue
         names = ", ".join(parameter.name for parameter in family.parameters(args.num_patterns, rig.rows, rig.cols))
         print(f"{name:<20} {family.summary}\n{'':<20} parameters at M={args.num_patterns}: {names[:160]}{'...' if len(names) > 160 else ''}")

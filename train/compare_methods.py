@@ -240,7 +240,7 @@ def collect_methods(config: CompareConfig, rig, pattern_dir: Path, progress: boo
                 continue
             try:
                 patterns = make_patterns(name, count, rig.rows, rig.cols, preset=config.heuristic_preset).numpy()
-            except InputError as error:  # identical patterns on a small grid: a skip, like an unsupported M
+            except InputError as error:  # identical or flat patterns on a small grid: a skip, like an unsupported M
                 skipped.append({"method": name, "M": count, "reason": str(error)})
                 continue
             # The file is written with the results (``run_compare``): an interrupted rerun with
