@@ -20,3 +20,20 @@ def test_image_grid_draws_colour_bars_only_where_labelled():
     fig = image_grid(images, ["rgb", "values"], "title", "caption", colorbar_label=[None, "degrees"])
     labels = [ax.get_ylabel() for ax in fig.axes if ax.get_ylabel()]
     assert labels == ["degrees"] and len(fig.axes) == 3  # two panels and one bar
+
+
+def test_image_grid_paints_flagged_pixels_and_marks_values_beyond_the_range():
+    """Invalid pixels looked like valid ones in evaluate's error maps (their placeholder error in
+    ordinary colours), and a fixed range clipped values without a sign on the colour bar."""
+    from train.figures import FLAGGED_COLOUR
+
+    values = np.arange(16.0).reshape(4, 4)
+    flagged = np.zeros((4, 4), dtype=bool)
+    flagged[0, :2] = True
+    fig = image_grid([values, values], ["clipped", "within"], "title", "caption", colorbar_label="v",
+                     limits=[(0.0, 10.0), (0.0, 20.0)], flagged=[flagged, None])
+    panels = [ax for ax in fig.axes if ax.get_title()]
+    overlay = panels[0].get_images()[-1].get_array()
+    assert len(panels[0].get_images()) == 2 and len(panels[1].get_images()) == 1
+    assert np.allclose(overlay[0, 0], (*FLAGGED_COLOUR, 1.0)) and overlay[1, 1, 3] == 0  # only flagged pixels are painted
+    assert [panel.get_images()[0].colorbar.extend for panel in panels] == ["max", "neither"]

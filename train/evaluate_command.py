@@ -184,40 +184,46 @@ def _write_scene_outputs(out: Path, stem: str, pixels, evaluation, residual_thre
     save_npy(out / f"{stem}_residual.npy", np.nan_to_num(residual, nan=1.0))
     errors = error_map(pixels, evaluation.result)
     estimate = normal_panel(normal, pixels.mask, valid)
+    invalid = pixels.mask & ~valid
     fig = image_grid(
         [estimate, normal_panel(truth, pixels.mask), errors, residual],
         ["estimated normals (black: flagged invalid)", "ground truth", f"angular error, MAE {evaluation.metrics['mae']:.2f} deg",
          "relative fit residual"],
         f"{pixels.name}",
         "Normals shown as RGB = ((x, -y, -z) + 1) / 2 in the camera frame, white outside the mask. Error: angle to the true "
-        f"normal inside the mask (colours saturate at {ERROR_MAP_MAX_DEG:g} deg; invalid pixels count with their placeholder "
-        "normal, as in the MAE). Residual: RMS misfit of the Lambertian model over the RMS capture, a confidence the solver "
-        f"computes without the truth (specular light and wrong shadow masks raise it; above {residual_threshold:g} is flagged poor_fit).",
+        f"normal inside the mask, colours saturate at {ERROR_MAP_MAX_DEG:g} deg; light blue: flagged invalid ({invalid.mean() / max(pixels.mask.mean(), 1e-12):.1%} "
+        "of the mask), counted in the MAE with their placeholder normal. Residual: RMS misfit of the Lambertian model over the "
+        f"RMS capture, a confidence the solver computes without the truth (specular light and wrong shadow masks raise it); "
+        f"colours saturate at {residual_threshold:g}, above which a valid pixel is flagged poor_fit.",
         columns=4,
         cmap="magma",
         colorbar_label=[None, None, "degrees", "residual"],
         limits=[None, None, (0.0, ERROR_MAP_MAX_DEG), (0.0, residual_threshold)],
+        flagged=[None, None, invalid, invalid],
     )
     save_figure(fig, out / f"{stem}_normals.png")
-    return pixels.name, estimate, errors, evaluation.metrics["mae"]
+    return pixels.name, estimate, errors, evaluation.metrics["mae"], invalid
 
 
 def _summary_figure(path: Path, panels: list, document: dict) -> None:
-    images, titles, limits, labels = [], [], [], []
-    for name, normal_rgb, errors, mae in panels:
+    images, titles, limits, labels, flagged = [], [], [], [], []
+    for name, normal_rgb, errors, mae, invalid in panels:
         images += [normal_rgb, errors]
         titles += [f"{name}: normals", f"error, MAE {mae:.2f} deg"]
         limits += [None, (0.0, ERROR_MAP_MAX_DEG)]
         labels += [None, "degrees"]
+        flagged += [None, invalid]
     fig = image_grid(
         images,
         titles,
         f"{document['method']} with {Path(document['patterns']).name}: mean MAE {document['mean_mae']:.2f} deg",
         f"Noise {document['noise']}, rig {document['rig']}, exposure {document['exposure']}. Normals white outside the mask, black where "
-        f"flagged invalid. Error maps: angle between estimated and true normals, colours saturate at {ERROR_MAP_MAX_DEG:g} degrees.",
+        f"flagged invalid. Error maps: angle between estimated and true normals, colours saturate at {ERROR_MAP_MAX_DEG:g} degrees; "
+        "light blue: flagged invalid (counted in the MAE with the placeholder normal).",
         columns=4,
         cmap="magma",
         colorbar_label=labels,
         limits=limits,
+        flagged=flagged,
     )
     save_figure(fig, path)

@@ -41,12 +41,17 @@ def save_figure(fig, path) -> None:
     plt.close(fig)
 
 
+FLAGGED_COLOUR = (0.35, 0.75, 0.95)
+"""Solid light blue over flagged pixels of value maps (no colour of magma or viridis)."""
+
+
 def image_grid(images: list[np.ndarray], titles: list[str], suptitle: str, caption: str, columns: int = 4, cmap=None, colorbar_label=None,
-               limits: list | None = None):
+               limits: list | None = None, flagged: list | None = None):
     """A figure with one panel per image (H, W, 3) or (H, W), titled, with a caption line below.
-    ``limits`` optionally gives each (H, W) image a fixed colour range (vmin, vmax) or None (its own).
-    ``colorbar_label``: one label for a colour bar beside every panel, or a list with a label (or
-    None: no bar) per panel."""
+    ``limits`` optionally gives each (H, W) image a fixed colour range (vmin, vmax) or None (its own);
+    a colour bar shows an arrow where values lie beyond it. ``colorbar_label``: one label for a
+    colour bar beside every panel, or a list with a label (or None: no bar) per panel. ``flagged``:
+    optionally per panel an (H, W) bool mask (or None) painted ``FLAGGED_COLOUR`` over the image."""
     count = len(images)
     columns = max(1, min(columns, count))
     rows = int(np.ceil(count / columns))
@@ -54,13 +59,26 @@ def image_grid(images: list[np.ndarray], titles: list[str], suptitle: str, capti
     for ax in axes.ravel():
         ax.set_axis_off()
     labels = colorbar_label if isinstance(colorbar_label, list) else [colorbar_label] * count
-    for ax, image, title, limit, label in zip(axes.ravel(), images, titles, limits or [None] * count, labels):
+    for ax, image, title, limit, label, marked in zip(axes.ravel(), images, titles, limits or [None] * count, labels, flagged or [None] * count):
         vmin, vmax = limit if limit is not None else (None, None)
         shown = ax.imshow(image, cmap=cmap, interpolation="nearest", vmin=vmin, vmax=vmax)
+        if marked is not None and marked.any():
+            overlay = np.zeros((*marked.shape, 4))
+            overlay[marked] = (*FLAGGED_COLOUR, 1.0)
+            ax.imshow(overlay, interpolation="nearest")
         ax.set_title(title, fontsize=9)
         if label is not None:
-            fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.04, label=label)
+            fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.04, label=label, extend=_beyond(image, vmin, vmax))
     fig.suptitle(suptitle)
     fig.text(0.5, 0.005, caption, ha="center", va="bottom", fontsize=8, wrap=True)
     fig.tight_layout(rect=(0, 0.04, 1, 1))
     return fig
+
+
+def _beyond(image: np.ndarray, vmin, vmax) -> str:
+    """Colour-bar ``extend``: which ends of a fixed range the image's values pass."""
+    if image.ndim != 2 or not np.isfinite(image).any():
+        return "neither"
+    low = vmin is not None and float(np.nanmin(image)) < vmin
+    high = vmax is not None and float(np.nanmax(image)) > vmax
+    return "both" if low and high else "min" if low else "max" if high else "neither"
