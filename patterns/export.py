@@ -220,7 +220,8 @@ def _write_export(values, rig: Rig, folder: Path, bit_depth: int, include_olat: 
             one_lit[row, col] = 1.0
             write_frame(f"olat_{light:0{digits}d}.png", one_lit, kind="olat", light=light, row=row, col=col)
 
-    save_contact_sheet(folder / CONTACT_SHEET_NAME, values, f"{len(values)} patterns for rig {name} (pattern grid order)")
+    # The sheet shows the frames as the display does, so that it can be checked against the panel.
+    save_contact_sheet(folder / CONTACT_SHEET_NAME, values, f"{len(values)} patterns for rig {name} (as displayed)", mirrored=mirrored)
     manifest = {
         "format": FORMAT,
         "rig": name,

@@ -488,3 +488,20 @@ def test_export_import_fixes_from_the_rig_builder_run(tmp_path, small_rig):
         with staged_files(tmp_path / "renamed"):
             pass
     assert any(issubclass(w.category, DisplexWarning) and ".staging.killed" in str(w.message) for w in caught)
+
+
+def test_export_contact_sheet_shows_the_frames_as_the_display_does(tmp_path, small_rig, monkeypatch):
+    """The sheet beside mirrored frames showed the patterns unmirrored: checked against the panel,
+    every pattern looked reversed."""
+    import patterns.export as export_module
+    from patterns.contact_sheet import contact_sheet_figure
+
+    seen = {}
+    monkeypatch.setattr(export_module, "save_contact_sheet", lambda path, values, title, mirrored=False: seen.update(mirrored=mirrored))
+    manifest = export_frames(_patterns(small_rig, 2), small_rig, tmp_path)
+    assert seen["mirrored"] is manifest["columns_mirrored"] is True
+    values = np.zeros((1, 9, 16, 3), np.float32)
+    for mirrored, extent in ((True, (15.5, -0.5)), (False, (-0.5, 15.5))):
+        fig = contact_sheet_figure(values, "sheet", mirrored=mirrored)
+        assert tuple(fig.axes[0].get_images()[0].get_extent()[:2]) == extent
+        assert ("pattern column 0 at the right" in fig._supxlabel.get_text().replace("\n", " ")) == mirrored
