@@ -790,6 +790,7 @@ def test_cost_chart_labels_its_axis_when_every_cost_is_below_a_second():
     low, high = ax.get_xlim()
     shown = [float(text) for text in labels if low <= float(text) <= high]
     assert {0.2, 0.5} <= set(shown) and not {0.3, 0.4, 0.6} & set(shown), labels
+    assert ax.get_xlabel() == "compute (s); log scale"  # log axes say so
 
 
 def test_cost_chart_crosses_out_all_invalid_methods_and_merges_coincident_labels():

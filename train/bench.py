@@ -391,7 +391,7 @@ def sweep_chart(document: dict, path: Path, caption: str) -> None:
     axes.set_xticks(scales, labels=[f"{scale:g}" for scale in scales])
     axes.minorticks_off()
     axes.set_ylim(bottom=0)
-    axes.set_xlabel("noise scale (x the rig's noise variances; 0 = ideal sensor)")
+    axes.set_xlabel("noise scale (x the rig's noise variances; 0 = ideal sensor; log scale above 0.25)")
     axes.set_ylabel("mean angular error (degrees)")
     axes.set_title(f"Normal error against noise ({len(document['scenes'])} scenes)")
     axes.grid(True, alpha=0.3)
