@@ -18,7 +18,7 @@ from capture_sim.scene import rig_for_scene
 from patterns.io import check_patterns_match_rig, load_patterns
 from reconstruct.photometric_stereo import invalid_causes
 from train.evaluate import EvalSettings, error_map, evaluate_scene, masked_map
-from train.figures import image_grid, normal_panel, save_figure
+from train.figures import ERROR_MAP_MAX_DEG, image_grid, normal_panel, save_figure
 from train.scene_pixels import require_ground_truth, scene_pixels
 from train.scene_sets import resolve_scenes
 from train.simulate_command import parse_exposure
@@ -166,10 +166,6 @@ def _refuse_repeated_scenes(files: list[Path], writes_maps: bool) -> None:
             raise InputError(f"scenes from different folders share the file name {file.stem}: their outputs in --out would overwrite each other")
         resolved.add(file.resolve())
         stems.add(file.stem)
-
-
-ERROR_MAP_MAX_DEG = 45.0
-"""Error maps saturate here (degrees), in the per-scene figures and the summary."""
 
 
 def _write_scene_outputs(out: Path, stem: str, pixels, evaluation, residual_threshold: float) -> tuple:

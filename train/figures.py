@@ -41,6 +41,9 @@ def save_figure(fig, path) -> None:
     plt.close(fig)
 
 
+ERROR_MAP_MAX_DEG = 45.0
+"""Normal error maps saturate here (degrees), in every command's figures, so that they compare."""
+
 FLAGGED_COLOUR = (0.35, 0.75, 0.95)
 """Solid light blue over flagged pixels of value maps (no colour of magma or viridis)."""
 

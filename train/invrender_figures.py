@@ -16,7 +16,7 @@ from reconstruct.inverse_render import InverseRenderResult
 from reconstruct.metrics import angular_error_deg
 from reconstruct.model_selection import SelectionConfig
 from reconstruct.relight import TEST_EVERY, VALIDATION_EVERY
-from train.figures import for_display, image_grid, normal_panel, normal_to_rgb, save_figure
+from train.figures import ERROR_MAP_MAX_DEG, for_display, image_grid, normal_panel, normal_to_rgb, save_figure
 
 
 def write_outputs(out: Path, output: dict, config, result: InverseRenderResult, relit, data, split, pixels, selection, scene) -> None:
@@ -78,12 +78,15 @@ def _normals_figure(path: Path, normal_image: np.ndarray, scene, output: dict, b
         ax.set_axis_off()
     if error is not None:
         ax = axes[0, -1]
-        shown = ax.imshow(error, cmap="magma", vmin=0.0, vmax=max(10.0, float(np.nanpercentile(error, 99))), interpolation="nearest")
-        fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.04, label="angular error (deg)")
+        # The fixed scale of evaluate's error maps, so that the two commands' figures compare.
+        shown = ax.imshow(error, cmap="magma", vmin=0.0, vmax=ERROR_MAP_MAX_DEG, interpolation="nearest")
+        fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.04, label="angular error (deg)",
+                     extend="max" if float(np.nanmax(error)) > ERROR_MAP_MAX_DEG else "neither")
         ax.set_title(f"error, MAE {output['mae']:.2f} deg", fontsize=9)
         ax.set_axis_off()
     fig.suptitle(f"Normals of {scene.name}")
-    fig.text(0.5, 0.005, "Camera-frame normals as RGB (x right = red, y up = green, towards camera = blue).", ha="center", fontsize=8)
+    fig.text(0.5, 0.005, "Camera-frame normals as RGB (x right = red, y up = green, towards camera = blue)"
+             + (f"; error colours saturate at {ERROR_MAP_MAX_DEG:g} deg." if error is not None else "."), ha="center", fontsize=8)
     fig.tight_layout(rect=(0, 0.05, 1, 1))
     save_figure(fig, path)
 
@@ -142,13 +145,16 @@ def _relit_figure(path: Path, relit, truth, test_lights, transport, output: dict
         light = int(test_lights[index])
         for ax, image, title in ((axes[row, 0], for_display(true_image), f"truth, light {light}"),
                                  (axes[row, 1], for_display(relit_image), f"relit, light {light}"),
-                                 (axes[row, 2], np.clip(error, 0, 1), "|relit - truth| x 10")):
-            ax.imshow(image, cmap="magma" if image.ndim == 2 else None, vmin=0, vmax=1, interpolation="nearest")
+                                 (axes[row, 2], error, "|relit - truth| x 10")):
+            shown = ax.imshow(image, cmap="magma" if image.ndim == 2 else None, vmin=0, vmax=1, interpolation="nearest")
             ax.set_title(title, fontsize=9)
             ax.set_axis_off()
+        fig.colorbar(shown, ax=axes[row, 2], fraction=0.046, pad=0.04, extend="max" if float(np.nanmax(error)) > 1 else "neither")
+    fit = output.get("fit", {})
     fig.suptitle(f"Held-out relighting: PSNR {output['psnr']:.2f} dB, SSIM {output['ssim']:.4f}")
-    fig.text(0.5, 0.005, f"Every {_ordinal(TEST_EVERY)} superpixel held out; exposed OLAT images (auto exposure), display gamma 1/2.2; error is the "
-             "channel-mean absolute difference times 10 (1 = 0.1 of full scale).", ha="center", fontsize=8, wrap=True)
+    fig.text(0.5, 0.005, f"The final fit ({fit.get('iterations', '?')} iterations) on held-out test lights: every {_ordinal(TEST_EVERY)} superpixel; "
+             "exposed OLAT images (auto exposure), display gamma 1/2.2; error is the channel-mean absolute difference times 10 "
+             "(1 = 0.1 of full scale; brighter saturates).", ha="center", fontsize=8, wrap=True)
     fig.tight_layout(rect=(0, 0.04, 1, 1))
     save_figure(fig, path)
 
@@ -178,7 +184,8 @@ def _selection_chart(path: Path, selection, selection_config: SelectionConfig) -
     ax.xaxis.get_major_locator().set_params(integer=True)
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    fig.text(0.5, 0.005, f"Each candidate fitted for {selection_config.iterations} steps, scored on every {_ordinal(VALIDATION_EVERY)} fit light; "
-             + selection.rule, ha="center", fontsize=7, wrap=True)
+    fig.text(0.5, 0.005, f"Each candidate fitted for {selection_config.iterations} steps, scored on every {_ordinal(VALIDATION_EVERY)} fit light "
+             "(validation lights, not the test lights of relit.png, whose PSNR is the final fit's); " + selection.rule,
+             ha="center", fontsize=7, wrap=True)
     fig.tight_layout(rect=(0, 0.07, 1, 1))
     save_figure(fig, path)
