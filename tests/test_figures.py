@@ -37,3 +37,12 @@ def test_image_grid_paints_flagged_pixels_and_marks_values_beyond_the_range():
     assert len(panels[0].get_images()) == 2 and len(panels[1].get_images()) == 1
     assert np.allclose(overlay[0, 0], (*FLAGGED_COLOUR, 1.0)) and overlay[1, 1, 3] == 0  # only flagged pixels are painted
     assert [panel.get_images()[0].colorbar.extend for panel in panels] == ["max", "neither"]
+
+
+def test_pattern_chart_outlines_every_pattern():
+    """A fully lit superpixel is white, like the gaps and the background: without an outline the
+    learned sets' edges were lost."""
+    from train.report_charts import chart_patterns
+
+    fig = chart_patterns([("white", np.ones((2, 3, 4, 3), np.float32)), ("black", np.zeros((3, 3, 4, 3), np.float32))], "caption")
+    assert [len(ax.patches) for ax in fig.axes] == [2, 3]

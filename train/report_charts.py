@@ -6,6 +6,7 @@ import math
 from collections import defaultdict
 from pathlib import Path
 
+import matplotlib.patches
 import matplotlib.ticker
 import numpy as np
 
@@ -307,6 +308,10 @@ def chart_patterns(entries: list[tuple[str, np.ndarray]], caption: str):
         canvas = np.ones((strip.shape[0], widest, 3), dtype=np.float32)
         canvas[:, : strip.shape[1]] = strip
         ax.imshow(canvas, interpolation="nearest")
+        # Outlined: fully lit superpixels would merge with the white gaps and background.
+        count, rows, cols, _ = patterns.shape
+        for index in range(count):
+            ax.add_patch(matplotlib.patches.Rectangle((index * (cols + 1) - 0.5, -0.5), cols, rows, fill=False, edgecolor="0.45", linewidth=0.6))
         ax.set_title(title, fontsize=8, loc="left")
         ax.set_axis_off()
     fig.suptitle("Pattern sets (display set values in [0, 1], before the display gamma)")
