@@ -46,3 +46,11 @@ def test_pattern_chart_outlines_every_pattern():
 
     fig = chart_patterns([("white", np.ones((2, 3, 4, 3), np.float32)), ("black", np.zeros((3, 3, 4, 3), np.float32))], "caption")
     assert [len(ax.patches) for ax in fig.axes] == [2, 3]
+
+
+def test_evaluate_summary_names_the_gains_the_scenes_were_captured_at():
+    from train.evaluate_command import _gains_text
+
+    assert _gains_text({"scenes": [{"exposure": 0.0062}, {"exposure": 0.041}]}) == " (gain e = 0.0062..0.041)"
+    assert _gains_text({"scenes": [{"exposure": 0.5}, {"exposure": 0.5}]}) == " (gain e = 0.5)"
+    assert _gains_text({"scenes": []}) == ""

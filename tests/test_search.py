@@ -174,7 +174,11 @@ def test_trace_chart_marks_where_bobyqa_probes_end():
     lines = {line.get_label(): line for line in fig.axes[0].get_lines()}
     assert list(lines["first steps after 5 probes"].get_xdata()) == [4.5, 4.5]
     assert "first steps after 5 probes" not in {line.get_label() for line in trace_figure(history, "t", "c").axes[0].get_lines()}
-    assert len(trace_figure(history[:3], "t", "c", probes=5).axes[0].get_lines()) == 2  # stopped among the probes: no line
+    # Stopped among the probes: no line, and the title says that the drop was no progress.
+    among = trace_figure(history[:3], "t", "c", probes=5).axes[0]
+    assert len(among.get_lines()) == 2 and "all 3 evaluations were probes around the start" in among.get_title()
+    assert "probes" not in fig.axes[0].get_title()
+    assert lines["best so far"].get_drawstyle() == "steps-post"  # a best so far holds until the next evaluation
 
 
 def test_objective_gradient_matches_central_differences():

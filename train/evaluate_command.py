@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -201,6 +202,15 @@ def _write_scene_outputs(out: Path, stem: str, pixels, evaluation, residual_thre
     return pixels.name, estimate, errors, evaluation.metrics["mae"], invalid
 
 
+def _gains_text(document: dict) -> str:
+    """' (gain e = 0.0062..0.041)': the exposures the scenes were captured at."""
+    gains = [row["exposure"] for row in document["scenes"] if isinstance(row.get("exposure"), (int, float))]
+    if not gains:
+        return ""
+    low, high = min(gains), max(gains)
+    return f" (gain e = {low:.2g})" if math.isclose(low, high) else f" (gain e = {low:.2g}..{high:.2g})"
+
+
 def _summary_figure(path: Path, panels: list, document: dict) -> None:
     images, titles, limits, labels, flagged = [], [], [], [], []
     for name, normal_rgb, errors, mae, invalid in panels:
@@ -213,7 +223,7 @@ def _summary_figure(path: Path, panels: list, document: dict) -> None:
         images,
         titles,
         f"{document['method']} with {Path(document['patterns']).name}: mean MAE {document['mean_mae']:.2f} deg",
-        f"Noise {document['noise']}, rig {document['rig']}, exposure {document['exposure']}. Normals white outside the mask, black where "
+        f"Noise {document['noise']}, rig {document['rig']}, exposure {document['exposure']}{_gains_text(document)}. Normals white outside the mask, black where "
         f"flagged invalid. Error maps: angle between estimated and true normals, colours saturate at {ERROR_MAP_MAX_DEG:g} degrees; "
         "light blue: flagged invalid (counted in the MAE with the placeholder normal).",
         columns=4,

@@ -508,9 +508,11 @@ def trace_figure(history: list, title: str, caption: str, probes: int = 0):
     values = np.array([value for _, value in history])
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     ax.plot(np.arange(values.size), values, "o", markersize=3, alpha=0.6, label="evaluation")
-    ax.plot(np.arange(values.size), np.minimum.accumulate(values), "-", linewidth=2, label="best so far")
+    ax.plot(np.arange(values.size), np.minimum.accumulate(values), "-", drawstyle="steps-post", linewidth=2, label="best so far")
     if 0 < probes < values.size:
         ax.axvline(probes - 0.5, color="gray", linestyle=":", linewidth=1, label=f"first steps after {probes} probes")
+    elif probes >= values.size > 0:  # the run ended among the probes: no step was taken
+        title = f"{title}\n(all {values.size} evaluations were probes around the start: no step taken)"
     ax.set_xlabel("evaluation index")
     ax.xaxis.get_major_locator().set_params(integer=True)  # evaluations are counted, not measured
     ax.set_ylabel("mean angular error (deg)")
