@@ -74,7 +74,7 @@ def _check_writable(path: Path, probed: set) -> None:
     try:
         handle, name = tempfile.mkstemp(prefix=".displex-probe.", dir=folder)
     except OSError as err:
-        raise InputError(f"cannot write {requested}: {err.strerror or err}") from None
+        raise InputError(f"cannot write {path}: {err.strerror or err}") from None
     os.close(handle)
     os.unlink(name)
 

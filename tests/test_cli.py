@@ -781,13 +781,17 @@ def test_documented_flags_reach_their_commands(tmp_path, scene_file, capsys):
     # The rig's grid decides the supported M: grouped_olat reaches M = 20 on 9 x 16, not on 4 x 8.
     assert run(["patterns", "list", "--M", "20", "--rig", "panel-55in-4x8"]) == 0
     assert "grouped_olat         (not defined for M=20 on 4 x 8)" in capsys.readouterr().out
-    # On a single row, top/bottom halves would repeat left/right ones: listed as such.
+    # On a single row, top/bottom halves would be flat (every cell at the half level): listed as
+    # such; on two rows, five splits of a 2 x 8 grid repeat one.
     one_row = tmp_path / "one_row.toml"
     from capture_sim.rig import rig_source
 
     one_row.write_text(rig_source("panel-55in-4x8").read_text().replace("rows = 4", "rows = 1"))
     assert run(["patterns", "list", "--M", "4", "--rig", str(one_row)]) == 0
-    assert "mono_complementary   (identical patterns for M=4 on 1 x 8)" in capsys.readouterr().out
+    assert "mono_complementary   (flat patterns: a single row or column across a direction for M=4 on 1 x 8)" in capsys.readouterr().out
+    one_row.write_text(rig_source("panel-55in-4x8").read_text().replace("rows = 4", "rows = 2"))
+    assert run(["patterns", "list", "--M", "9", "--rig", str(one_row)]) == 0
+    assert "mono_complementary   (identical patterns for M=9 on 2 x 8)" in capsys.readouterr().out
     assert run(["patterns", "list", "--M", "4"]) == 0
     listing = capsys.readouterr().out
     from patterns.families import FAMILIES
