@@ -189,9 +189,8 @@ class PSResult:
             flags say that the estimate is degraded, not meaningless (not-converged ones far from
             a fixed point carry no gradient, see ``solve_ps``).
         condition: (...) normal condition number (``pixel_solve.normal_condition``; Woodham's:
-            ``woodham.woodham_condition``), in
-            [1, CONDITION_CAP] (without the zero captures at a kink of patterns that leave
-            superpixels exactly dark: ``PatternEvaluator.lit_condition``).
+            ``woodham.woodham_condition``), in [1, CONDITION_CAP] (without the zero captures at a
+            kink of patterns that leave superpixels exactly dark: ``PatternEvaluator.lit_condition``).
         residual: (...) RMS residual of the Lambertian fit relative to the RMS capture, in [0, 1],
             over the equations used (saturated captures are left out; 1 where none is left or no
             light was captured, and outside the mask of image solves) (``pixel_solve.

@@ -480,16 +480,36 @@ def normal_condition(normal: torch.Tensor, albedo: torch.Tensor, moment: torch.T
     Returns:
         (N,) condition numbers in [1, CONDITION_CAP].
     """
+    energy, s11, s12, s22 = (term.sum(0) for term in _schur_terms(normal, albedo.square(), moment))
+    return _condition(energy / 3, s11, s12, s22)
+
+
+def channel_normal_conditions(normal: torch.Tensor, moment: torch.Tensor) -> torch.Tensor:
+    """(3, N) condition numbers of each channel's own fit g_c = a_c n at the normals (3, N): the
+    ``normal_condition`` of one channel's moments (3, 6, N) with its albedo free (Woodham). A
+    channel with fewer than three independent equations gets CONDITION_CAP in float64, but only
+    about 1e6 to 1e7 in float32 (rounding leaves a small eigenvalue)."""
+    energy, s11, s12, s22 = _schur_terms(normal, torch.ones((), dtype=moment.dtype), moment)
+    return _condition(energy / 3, s11, s12, s22)
+
+
+def _schur_terms(normal, weight, moment):
+    """Per-channel (3, N) terms of ``normal_condition``: weight * trace(B_c) and the entries s11,
+    s12, s22 of weight * S_c, with the tangent basis formed once for all channels."""
     tiny = _tiny(moment.dtype)
-    weight = albedo.square()
-    scale = (weight * symmetric_trace(moment)).sum(0) / 3
     first, second = tangent_basis(normal)
     normal_energy = quadratic_form(moment, normal, normal).clamp_min(tiny)
     coupling_first, coupling_second = quadratic_form(moment, normal, first), quadratic_form(moment, normal, second)
-    s11 = (weight * (quadratic_form(moment, first, first) - coupling_first.square() / normal_energy)).sum(0)
-    s12 = (weight * (quadratic_form(moment, first, second) - coupling_first * coupling_second / normal_energy)).sum(0)
-    s22 = (weight * (quadratic_form(moment, second, second) - coupling_second.square() / normal_energy)).sum(0)
+    return (weight * symmetric_trace(moment),
+            weight * (quadratic_form(moment, first, first) - coupling_first.square() / normal_energy),
+            weight * (quadratic_form(moment, first, second) - coupling_first * coupling_second / normal_energy),
+            weight * (quadratic_form(moment, second, second) - coupling_second.square() / normal_energy))
+
+
+def _condition(scale, s11, s12, s22):
+    """Condition numbers scale / lambda_min of the 2 x 2 matrices [[s11, s12], [s12, s22]], in
+    [1, CONDITION_CAP] (the cap where lambda_min is negligible or the scale is zero)."""
     smallest = ((s11 + s22) / 2 - torch.sqrt(((s11 - s22) / 2).square() + s12.square())).clamp_min(0)
-    singular = (smallest * CONDITION_CAP <= scale) | (scale <= tiny)
+    singular = (smallest * CONDITION_CAP <= scale) | (scale <= _tiny(scale.dtype))
     condition = scale / torch.where(singular, torch.ones_like(smallest), smallest)
     return torch.where(singular, torch.full_like(condition, CONDITION_CAP), condition.clamp(1.0, CONDITION_CAP))

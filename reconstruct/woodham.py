@@ -48,7 +48,7 @@ from reconstruct.photometric_stereo import (
     unscale_albedo,
     working_config,
 )
-from reconstruct.pixel_solve import Moments, albedo_step, damped_solve, normal_condition, relative_residual, scaled_moments, unit
+from reconstruct.pixel_solve import Moments, albedo_step, channel_normal_conditions, damped_solve, relative_residual, scaled_moments, unit
 from reconstruct.shadow_search import restarted_search
 
 
@@ -67,31 +67,23 @@ class WoodhamConfig(SolverSettings):
             raise InputError(f"WoodhamConfig: shadow_threshold must lie in [0, 1), got {self.shadow_threshold!r}")
 
 
-def channel_conditions(normal: torch.Tensor, moment: torch.Tensor) -> torch.Tensor:
-    """(3, N) condition numbers of each channel's own fit g_c = a_c n at the normals (3, N):
-    ``normal_condition`` of one channel's moments (3, 6, N) with its albedo free. A channel with
-    fewer than three independent equations gets CONDITION_CAP in float64, but only about 1e6 to
-    1e7 in float32 (rounding leaves a small eigenvalue): a ``condition_threshold`` that high lets
-    such channels into the normal."""
-    ones = torch.ones((1, normal.shape[1]), dtype=normal.dtype)
-    return torch.stack([normal_condition(normal, ones, moment[channel : channel + 1]) for channel in range(3)])
-
-
 def woodham_condition(normal: torch.Tensor, albedo: torch.Tensor, moment: torch.Tensor) -> torch.Tensor:
     """(N,) condition numbers of Woodham's normals (3, N): that of the best-determined channel
-    (``channel_conditions``; the albedo (3, N) is not needed: each channel's is free)."""
-    return channel_conditions(normal, moment).amin(dim=0)
+    (``pixel_solve.channel_normal_conditions``; the albedo (3, N) is not needed: each channel's is
+    free). In float32 a ``condition_threshold`` of 1e6 or more lets rank-deficient channels in."""
+    return channel_normal_conditions(normal, moment).amin(dim=0)
 
 
 def woodham_fit(moments: Moments, damping: float, condition_threshold: float):
     """Per-channel least squares g_c = B_c^-1 r_c, normal = direction of the sum of g_c over the
-    channels whose condition number (``channel_conditions``) is within ``condition_threshold``
-    (every channel where none is: such a pixel is flagged ill_conditioned anyway).
+    channels whose condition number is within ``condition_threshold``
+    (``pixel_solve.channel_normal_conditions``; every channel where none is: such a pixel is
+    flagged ill_conditioned anyway).
 
     Returns (albedo (3, N), normal (3, N), converged (N,) all True), the shadow-search fit.
     """
     per_channel = damped_solve(moments.moment, moments.projection, damping)  # (3, 3, N)
-    usable = channel_conditions(unit(per_channel.sum(0)), moments.moment) <= condition_threshold  # (3, N)
+    usable = channel_normal_conditions(unit(per_channel.sum(0)), moments.moment) <= condition_threshold  # (3, N)
     usable |= ~usable.any(dim=0, keepdim=True)
     normal = unit((per_channel * usable[:, None]).sum(0))
     return albedo_step(normal, moments, damping), normal, torch.ones(normal.shape[1], dtype=torch.bool)
@@ -166,9 +158,10 @@ def _solve_block(evaluator, light_field: LightField, config, dark_and_saturated=
     # the shared normal are restarted (on a noise-free sphere under tri_gradient M = 3, 71 of 2000
     # pixels were valid and 12-137 deg off; 20 after, all below the poor-fit residual). OLAT
     # stacks overdetermine each channel; their poor fits are specular, which restarts do not help.
-    restart_residual = config.residual_threshold if isinstance(evaluator, PatternEvaluator) else None
+    patterns = isinstance(evaluator, PatternEvaluator)
+    restart_residual = config.residual_threshold if patterns else None
     state, condition = restarted_search(evaluator, fit, torch.ones((3, count), dtype=view.dtype), view, config, woodham_condition, restart_residual)
-    if isinstance(evaluator, PatternEvaluator):  # OLAT stacks leave shadowed equations out of the moments already
+    if patterns:  # OLAT stacks leave shadowed equations out of the moments already
         condition = evaluator.lit_condition(state.normal, state.albedo, condition, config.kink_tolerance_deg, woodham_condition)
     dark, saturated = evaluator.capture_flags() if dark_and_saturated is None else dark_and_saturated
     albedo = state.albedo * (state.moments.capture_scale / state.moments.lighting_scale)

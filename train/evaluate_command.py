@@ -161,11 +161,12 @@ def _refuse_repeated_scenes(files: list[Path], writes_maps: bool) -> None:
     by the file stem) would overwrite each other."""
     resolved, stems = set(), set()
     for file in files:
-        if file.resolve() in resolved:
+        place = file.resolve()
+        if place in resolved:
             raise InputError(f"the scene file {file} is given twice (directly or through its folder)")
         if writes_maps and file.stem in stems:
             raise InputError(f"scenes from different folders share the file name {file.stem}: their outputs in --out would overwrite each other")
-        resolved.add(file.resolve())
+        resolved.add(place)
         stems.add(file.stem)
 
 
