@@ -793,21 +793,49 @@ def test_cost_chart_labels_its_axis_when_every_cost_is_below_a_second():
     assert ax.get_xlabel() == "compute (s); log scale"  # log axes say so
 
 
-def test_cost_chart_crosses_out_all_invalid_methods_and_merges_coincident_labels():
-    """A method whose every pixel is invalid gets a labelled cross; methods on one point share one "M=" label."""
-    from train.report_charts import ALL_INVALID_LABEL, chart_mae_vs_cost
+def test_cost_chart_draws_failed_methods_in_a_band_and_merges_coincident_labels():
+    """Methods with (nearly) every pixel invalid are drawn crossed out, with their own markers side
+    by side, in a band above the data (not at the placeholder's MAE, where real results may sit);
+    methods on one point share one "M=" label."""
+    from train.report_charts import FAILED_BAND, FAILED_LABEL, chart_mae_vs_cost
 
     rows = aggregate_rows(fake_results(), 0.5)
     rows.append(dict(next(row for row in rows if row["series"] == "s"), series="s2", label="s2"))  # the search's twin
     rows.append(dict(rows[0], series="dead", label="dead", kind="external", mae=60.0, invalid_fraction=1.0))
+    rows.append(dict(rows[0], series="nearly", label="nearly", kind="external", mae=60.0, invalid_fraction=0.9999))
     fig = chart_mae_vs_cost(rows, "compute_seconds", "compute (s)", "speed", "caption")
     ax = fig.axes[0]
-    crosses = [line for line in ax.get_lines() if line.get_label() == ALL_INVALID_LABEL]
-    assert len(crosses) == 1 and list(crosses[0].get_ydata()) == [60.0]
+    in_band = [line for line in ax.get_lines() if list(line.get_ydata()) == [FAILED_BAND]]
+    crosses = [line for line in in_band if line.get_marker() == "x"]
+    assert len(crosses) == 2 and [line.get_label() for line in crosses].count(FAILED_LABEL) == 1
+    styles = {(line.get_marker(), line.get_color()) for line in in_band if line.get_marker() != "x"}
+    assert len(styles) == 2 and {marker for marker, _ in styles} == {"s"}  # the two external sets' own styles
+    positions = {tuple(line.get_transform().transform((0.1, FAILED_BAND))) for line in crosses}
+    assert len(positions) == 2  # side by side, not on top of each other
+    assert 60.0 not in [y for line in ax.get_lines() if line not in in_band for y in line.get_ydata()]
+    assert ax.get_ylim()[1] < 60.0  # the placeholder's MAE does not stretch the axis
     annotations = [child.get_text() for child in ax.texts]
-    # learned and the two searches and the dead method all sit at 0.1 s; the search twins coincide.
-    assert sorted(annotations) == ["M=2", "M=2", "M=2"], annotations
-    assert ALL_INVALID_LABEL in [text.get_text() for text in ax.get_legend().get_texts()]
+    # learned and the two searches sit at 0.1 s; the search twins coincide; failed methods get no label.
+    assert sorted(annotations) == ["M=2", "M=2"], annotations
+    assert FAILED_LABEL in [text.get_text() for text in ax.get_legend().get_texts()]
+
+
+def test_count_labels_move_aside_instead_of_covering_each_other():
+    """Two labelled points a few pixels apart (not close enough to share a label) get labels at
+    different offsets, so neither covers the other."""
+    from train.report_charts import _label_counts
+    from train.figures import plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.set_xscale("log")
+    ax.plot([0.5, 0.52, 3.0], [11.0, 11.1, 20.0], linestyle="none", marker="o")
+    ax.set_xlim(0.1, 10.0)
+    ax.set_ylim(0.0, 30.0)
+    _label_counts(ax, [(0.5, 11.0, 4), (0.52, 11.1, 144), (3.0, 20.0, 2)])
+    offsets = {text.get_text(): tuple(text.xyann) for text in ax.texts}
+    assert set(offsets) == {"M=4", "M=144", "M=2"}
+    assert offsets["M=4"] != offsets["M=144"] and offsets["M=2"] == (4, 3)
+    plt.close(fig)
 
 
 def test_mae_chart_close_up_spans_the_best_methods_and_leaves_out_all_invalid_ones():

@@ -17,16 +17,16 @@ from capture_sim.atomic import write_text
 from patterns.families import FAMILIES, PRESET_LEVELS
 from reconstruct.photometric_stereo import INVALIDATING_FLAGS
 from train.report_charts import CHARTS, write_charts
-from train.report_rows import KIND_ORDER, aggregate_rows, all_invalid, evaluation_at, learned_rows_per_m, lowest_mae_per_m, summary_tables
+from train.report_rows import KIND_ORDER, NEARLY_ALL_INVALID, aggregate_rows, all_invalid, evaluation_at, learned_rows_per_m, lowest_mae_per_m, summary_tables
 
 
 def invalid_note(fraction: float) -> str:
     """' (all invalid)' or ' (99.99% invalid)' after an error that (nearly) only measures the
-    placeholder normal (at least 99% of the pixels invalid); '' otherwise."""
+    placeholder normal (at least ``NEARLY_ALL_INVALID`` of the pixels invalid); '' otherwise."""
     if fraction >= 1.0:
         return " (all invalid)"
     # Rounded to float32's precision first (0.9999 is 0.99989998), then down, never up to 100%.
-    return f" ({min(math.floor(round(fraction * 1e4, 3)) / 100, 99.99):g}% invalid)" if fraction >= 0.99 else ""
+    return f" ({min(math.floor(round(fraction * 1e4, 3)) / 100, 99.99):g}% invalid)" if fraction >= NEARLY_ALL_INVALID else ""
 
 
 

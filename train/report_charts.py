@@ -8,11 +8,12 @@ from pathlib import Path
 
 import matplotlib.patches
 import matplotlib.ticker
+import matplotlib.transforms
 import numpy as np
 
 from patterns.families import FAMILIES
 from train.figures import plt, save_figure
-from train.report_rows import KIND_ORDER, aggregate_rows, all_invalid
+from train.report_rows import KIND_ORDER, NEARLY_ALL_INVALID, aggregate_rows, placeholder_error
 
 
 CHARTS = {
@@ -90,18 +91,72 @@ def _series(rows: list[dict]) -> dict:
     return {key: sorted(values, key=lambda r: r["M"]) for key, values in sorted(series.items(), key=lambda item: KIND_ORDER.get(item[0][0], 9))}
 
 
-ALL_INVALID_LABEL = "every pixel invalid (MAE of the placeholder normal)"
+FAILED_LABEL = f"crossed out at the top: {NEARLY_ALL_INVALID:.0%} or more of the pixels invalid, no MAE to show"
+FAILED_BAND = 0.955
+"""Height (axes fraction) of the band at the top of a chart where failed methods are drawn."""
+FAILED_ROOM = 0.15
+"""Room made above the data for that band, as a fraction of the value axis' span."""
+FAILED_SPACING = 8.5
+"""Points between the markers of methods failing at one x."""
 
 
-def _cross_out(ax, points: list[tuple[float, float]]) -> None:
-    """Mark chart points (x, y) of all-invalid evaluations with one labelled black cross each."""
-    if points:
-        ax.plot(*zip(*points), linestyle="none", marker="x", color="black", markersize=11, markeredgewidth=1.5, label=ALL_INVALID_LABEL, zorder=5)
+def _make_room_for_failed(ax) -> None:
+    """Extend the value axis upwards by ``FAILED_ROOM`` so that the failure band covers no data
+    (once per shared axis: the panels of one figure share their limits)."""
+    low, high = ax.get_ylim()
+    if ax.get_yscale() == "log":
+        ax.set_ylim(low, high * (high / low) ** FAILED_ROOM)
+    else:
+        ax.set_ylim(low, high + FAILED_ROOM * (high - low))
+
+
+def _mark_failed(ax, failed: list[tuple[float, dict]], peers: dict, make_room: bool = True) -> None:
+    """Draw the failed methods (x, row), whose MAE (nearly) only measures the placeholder
+    normal (``placeholder_error``), in a band at the top of the axes instead of at that MAE: it
+    is the same ~40 deg for every such method and would sit among real results. Each shows its
+    own marker, crossed out, at its x; methods failing at one x stand side by side, so the legend
+    tells which failed (a method drawn nowhere else gets its legend entry here)."""
+    if not failed:
+        return
+    if make_room:
+        _make_room_for_failed(ax)
+    band = ax.get_xaxis_transform()  # x in data, y in axes units
+    ax.plot([0, 1], [FAILED_BAND - 0.035] * 2, transform=ax.transAxes, color="0.75", linewidth=0.8, label="_nolegend_")
+    by_x: dict = defaultdict(dict)
+    for x, row in failed:
+        by_x[x].setdefault((row["kind"], row["series"]), row["label"])
+    listed = set(ax.get_legend_handles_labels()[1])
+    label = FAILED_LABEL
+    for x, methods in by_x.items():
+        # Centred on x, or starting (ending) there near the left (right) edge of the panel.
+        where = ax.transAxes.inverted().transform(ax.transData.transform((x, 1.0)))[0]
+        first = 0.0 if where < 0.15 else -(len(methods) - 1.0) if where > 0.85 else -(len(methods) - 1) / 2
+        for rank, ((kind, series), method) in enumerate(methods.items()):
+            shifted = matplotlib.transforms.offset_copy(band, fig=ax.figure, x=FAILED_SPACING * (first + rank), y=0.0, units="points")
+            ax.plot([x], [FAILED_BAND], transform=shifted, linestyle="none", markersize=7, clip_on=False,
+                    label="_nolegend_" if method in listed else method, **_marker_style(kind, series, peers))
+            listed.add(method)
+            ax.plot([x], [FAILED_BAND], transform=shifted, linestyle="none", marker="x", color="black", markersize=4, markeredgewidth=0.8,
+                    clip_on=False, label=label, zorder=5)
+            label = "_nolegend_"
+
+
+LABEL_OFFSETS = ((4, 3), (4, -9), (-4, 3), (-4, -9), (4, 10), (4, -16))
+"""Where an "M=" label may sit, tried in order: (x, y) of its lower corner from its point, in
+points; a negative x puts the label's right edge there (left of the point)."""
+LABEL_FONT_SIZE = 6
+
+
+def _boxes_overlap(first, second) -> bool:
+    return first[0] < second[2] and second[0] < first[2] and first[1] < second[3] and second[1] < first[3]
 
 
 def _label_counts(ax, points: list[tuple[float, float, int]]) -> None:
     """Label chart points (x, y, M) with "M=..." on log axes; points within 2 % of each other
-    share one label listing their M values (methods with the same result would pile up)."""
+    share one label listing their M values (methods with the same result would pile up). Each
+    label takes the first of ``LABEL_OFFSETS`` that covers no labelled point and no label placed
+    before it (sizes estimated from the font size), so call this after the axes' scales and
+    limits are set."""
     groups: list[list] = []
     for x, y, count in sorted(points):
         for group in groups:
@@ -110,15 +165,26 @@ def _label_counts(ax, points: list[tuple[float, float, int]]) -> None:
                 break
         else:
             groups.append([x, y, {count}])
-    for x, y, counts in groups:
-        ax.annotate("M=" + ",".join(map(str, sorted(counts))), (x, y), textcoords="offset points", xytext=(4, 3), fontsize=6)
+    ax.get_xlim(), ax.get_ylim()  # settle the automatic limits before mapping points to the display
+    points_per_pixel = 72.0 / ax.figure.dpi
+    anchors = [ax.transData.transform((x, y)) * points_per_pixel for x, y, _ in groups]
+    taken = [(px - 3.5, py - 3.5, px + 3.5, py + 3.5) for px, py in anchors]  # the markers
+    for (x, y, counts), (px, py) in zip(groups, anchors):
+        text = "M=" + ",".join(map(str, sorted(counts)))
+        width, height = 0.6 * LABEL_FONT_SIZE * len(text), LABEL_FONT_SIZE
+        options = [(dx if dx >= 0 else dx - width, dy) for dx, dy in LABEL_OFFSETS]
+        boxes = [(px + dx, py + dy, px + dx + width, py + dy + height) for dx, dy in options]
+        choice = next((index for index, box in enumerate(boxes) if not any(_boxes_overlap(box, other) for other in taken)), 0)
+        taken.append(boxes[choice])
+        ax.annotate(text, (x, y), textcoords="offset points", xytext=options[choice], fontsize=LABEL_FONT_SIZE)
 
 
 def close_up_limits(rows: list[dict], headroom: float = 1.4) -> tuple[float, float] | None:
     """The MAE range (deg) of the close-up panel of ``chart_mae_vs_patterns``: from just below the
     lowest MAE to ``headroom`` times the largest of the per-M lowest MAEs (the OLAT reference line
-    included when it lies within twice that), all-invalid rows left out. None without a valid row."""
-    valid = [row for row in rows if not all_invalid(row) and math.isfinite(row["mae"])]
+    included when it lies within twice that), failed rows (``placeholder_error``) left out. None
+    without another row."""
+    valid = [row for row in rows if not placeholder_error(row) and math.isfinite(row["mae"])]
     best_per_m = [min(row["mae"] for row in valid if row["M"] == count) for count in {row["M"] for row in valid if row["kind"] != "reference"}]
     if not best_per_m:
         return None
@@ -140,12 +206,13 @@ def chart_mae_vs_patterns(rows: list[dict], caption: str):
             if kind == "reference":
                 ax.axhline(values[0]["mae"], color="black", linestyle="--", linewidth=1, label=f"{values[0]['label']}")
                 continue
-            # An all-invalid point measures the placeholder normal: crossed out below, and the line
-            # breaks there instead of joining it to real reconstructions.
-            maes = [math.nan if all_invalid(row) else row["mae"] for row in values]
+            # A failed point measures the placeholder normal: drawn in the failure band below, and
+            # the line breaks there instead of joining it to real reconstructions.
+            maes = [math.nan if placeholder_error(row) else row["mae"] for row in values]
             errors = [row["mae_std"] for row in values]
             ax.errorbar([row["M"] for row in values], maes, yerr=errors if kind == "learned" else None, label=label, capsize=3, **_style(kind, series, peers))
-        _cross_out(ax, [(row["M"], row["mae"]) for row in rows if row["kind"] != "reference" and all_invalid(row)])
+        if ax is axes[0]:  # the close-up shows the most accurate methods only
+            _mark_failed(ax, [(row["M"], row) for row in rows if row["kind"] != "reference" and placeholder_error(row)], peers)
         ax.set_xticks(counts)
         ax.set_xlabel("number of patterns M (images)")
         ax.set_ylabel("mean angular error (deg)")
@@ -188,7 +255,8 @@ def chart_mae_vs_cost(rows: list[dict], key: str, xlabel: str, title: str, capti
     fig, ax = plt.subplots(figsize=(9.0, 4.8))
     labelled, peers = [], _peers(rows)
     counts = sorted({row["M"] for row in rows if row["kind"] == "heuristic"})
-    for (kind, label, series), values in _series(rows).items():
+    failed = [(max(row[key], 1e-6), row) for row in rows if placeholder_error(row)]
+    for (kind, label, series), values in _series([row for row in rows if not placeholder_error(row)]).items():
         xs = [max(row[key], 1e-6) for row in values]
         ys = [row["mae"] for row in values]
         style = _marker_style(kind, series, peers)
@@ -201,9 +269,8 @@ def chart_mae_vs_cost(rows: list[dict], key: str, xlabel: str, title: str, capti
         labelled += [(x, y, row["M"]) for x, y, row in zip(xs, ys, values)]
     if len(counts) > 1:
         caption += f" Heuristic families: marker size grows with M ({', '.join(map(str, counts))})."
-    _label_counts(ax, labelled)
-    _cross_out(ax, [(max(row[key], 1e-6), row["mae"]) for row in rows if all_invalid(row)])
     ax.set_xscale("log")
+    _mark_failed(ax, failed, peers)
     plain_log_ticks(ax.xaxis)
     ax.set_xlabel(f"{xlabel}; log scale")
     ax.set_ylabel("mean angular error (deg)")
@@ -212,6 +279,7 @@ def chart_mae_vs_cost(rows: list[dict], key: str, xlabel: str, title: str, capti
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     _caption(fig, caption)
     fig.tight_layout()
+    _label_counts(ax, labelled)  # after the layout: labels make room for each other on the final axes
     return fig
 
 
@@ -222,27 +290,32 @@ def chart_mae_vs_noise(results: dict, caption: str):
     per_noise = {noise: aggregate_rows(results, noise) for noise in results["noise_scales"]}
     noises = sorted(per_noise)
     peers = _peers([row for rows in per_noise.values() for row in rows])
+    failed: dict = {}
     for ax, count in zip(axes[0], counts):
         keys = {}
         for noise in noises:
             for row in per_noise[noise]:
                 if row["M"] == count or row["kind"] == "reference":
-                    # An all-invalid point measures the placeholder normal: crossed out, the line breaks.
-                    broken = all_invalid(row) and row["kind"] != "reference"  # crossed out below, as the reference is not
+                    # A failed point measures the placeholder normal: drawn in the failure band, the line breaks.
+                    broken = placeholder_error(row) and row["kind"] != "reference"
                     keys.setdefault((row["kind"], row["label"], row["series"]), []).append((noise, math.nan if broken else row["mae"]))
         for (kind, label, series), points in sorted(keys.items(), key=lambda item: KIND_ORDER.get(item[0][0], 9)):
             style = _style(kind, series, peers)
             if kind == "reference":
                 style.update(linestyle="--", marker="*")
             ax.plot([p[0] for p in points], [p[1] for p in points], label=label, **style)
-        _cross_out(ax, [(noise, row["mae"]) for noise in noises for row in per_noise[noise]
-                        if row["M"] == count and row["kind"] != "reference" and all_invalid(row)])
+        failed[ax] = [(noise, row) for noise in noises for row in per_noise[noise]
+                      if row["M"] == count and row["kind"] != "reference" and placeholder_error(row)]
         ax.set_xscale("symlog", linthresh=min([n for n in noises if n > 0], default=1.0))
         ax.set_xticks(noises)
         ax.set_xticklabels([f"{n:g}" for n in noises])
         ax.set_xlabel("noise scale (x rig noise variance; log scale)")
         ax.set_title(f"M = {count}")
         ax.grid(alpha=0.3)
+    if any(failed.values()):
+        _make_room_for_failed(axes[0, 0])  # once: the panels share their limits
+    for ax, points in failed.items():
+        _mark_failed(ax, points, peers, make_room=False)
     axes[0, 0].set_ylabel("mean angular error (deg)")
     legend = {}
     for ax in axes[0]:
@@ -262,22 +335,23 @@ def chart_specular_free(rows: list[dict], free_rows: list[dict], caption: str):
     free = {(row["series"], row["M"]): row["mae"] for row in free_rows}
     fig, ax = plt.subplots(figsize=(9.0, 5.2))
     labelled, peers = [], _peers(rows)
-    for (kind, label, series), values in _series(rows).items():
-        points = [(free[(row["series"], row["M"])], row["mae"], row["M"]) for row in values if (row["series"], row["M"]) in free]
+    shown = [row for row in rows if (row["series"], row["M"]) in free]
+    drawn = [row for row in shown if not placeholder_error(row)]
+    for (kind, label, series), values in _series(drawn).items():
+        points = [(free[(row["series"], row["M"])], row["mae"], row["M"]) for row in values]
         if not points:
             continue
         style = _marker_style(kind, series, peers)
         ax.plot([p[0] for p in points], [p[1] for p in points], linestyle="none", markersize=7, label=label, **style)
         if kind != "heuristic":
             labelled += points
-    _label_counts(ax, labelled)
-    _cross_out(ax, [(free[(row["series"], row["M"])], row["mae"]) for row in rows if (row["series"], row["M"]) in free and all_invalid(row)])
-    low = max(min([*free.values(), *(row["mae"] for row in rows)], default=0.1), 1e-2)
-    high = max([*free.values(), *(row["mae"] for row in rows)], default=1.0)
+    values = [free[(row["series"], row["M"])] for row in drawn] + [row["mae"] for row in drawn]
+    low, high = max(min(values, default=0.1), 1e-2), max(values, default=1.0)
     ax.plot([low, high], [low, high], color="grey", linewidth=1, linestyle=":", label="no specular error (y = x)")
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ax.set_ylim(bottom=max(min((row["mae"] for row in rows), default=low), 1e-2) / 1.5)  # the diagonal may leave the plot below
+    ax.set_ylim(bottom=max(min((row["mae"] for row in drawn), default=low), 1e-2) / 1.5)  # the diagonal may leave the plot below
+    _mark_failed(ax, [(free[(row["series"], row["M"])], row) for row in shown if placeholder_error(row)], peers)
     plain_log_ticks(ax.xaxis)
     plain_log_ticks(ax.yaxis)
     ax.set_xlabel("mean angular error without specular reflection (deg, log scale)")
@@ -287,6 +361,7 @@ def chart_specular_free(rows: list[dict], free_rows: list[dict], caption: str):
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     _caption(fig, caption)
     fig.tight_layout()
+    _label_counts(ax, labelled)  # after the layout: labels make room for each other on the final axes
     return fig
 
 

@@ -185,6 +185,17 @@ def learned_against_more_captures(rows: list[dict]) -> list[dict]:
     ]
 
 
+NEARLY_ALL_INVALID = 0.99
+"""Share of invalid pixels from which a method's MAE (nearly) only measures the placeholder normal
+of invalid pixels: the report's tables mark such errors and the charts draw them as failures."""
+
+
+def placeholder_error(row: dict) -> bool:
+    """Whether at least ``NEARLY_ALL_INVALID`` of a method's pixels were invalid, so that its MAE
+    is (nearly) that of the placeholder normal, the same for every such method."""
+    return row.get("invalid_fraction", 0.0) >= NEARLY_ALL_INVALID
+
+
 def all_invalid(row: dict) -> bool:
     """Whether every pixel of a method's evaluation was flagged invalid: its MAE measures the
     placeholder normal, not a reconstruction."""
