@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -638,9 +639,18 @@ def scene_file(tmp_path_factory, small_scene):
     return path
 
 
-def test_run_invrender_olat_writes_every_output(tmp_path, scene_file):
+def test_run_invrender_olat_writes_every_output(tmp_path, scene_file, monkeypatch):
+    import train.invrender_figures
     from train.invrender_command import InvRenderConfig, run_invrender
 
+    colour_ranges = {}
+    save_figure = train.invrender_figures.save_figure
+
+    def keep_ranges(fig, path):
+        colour_ranges[Path(path).name] = [image.get_clim() for ax in fig.axes for image in ax.get_images()]
+        save_figure(fig, path)
+
+    monkeypatch.setattr(train.invrender_figures, "save_figure", keep_ranges)
     out = tmp_path / "run"
     out.mkdir()
     (out / "model_selection.png").write_bytes(b"an earlier --basis auto run's chart")
@@ -657,6 +667,7 @@ def test_run_invrender_olat_writes_every_output(tmp_path, scene_file):
     normals = np.load(out / "normals.npy")
     assert normals.shape == (*small_scene_shape(scene_file), 3)
     assert json.loads((tmp_path / "result.json").read_text())["J"] == 2
+    assert colour_ranges["weights.png"] == [(0.0, 1.0)] * 2  # weights on the simplex: one scale for every basis
 
 
 def small_scene_shape(path):
