@@ -202,13 +202,18 @@ class PSResult:
             valid pixel whose estimated n . v is below the config's ``grazing_cos``). Like
             saturated and not_converged, poor_fit and grazing pixels stay valid.
 
-    No flag marks a wrong shadow mask that fits exactly. With few equations (3 M close to the 5
-    unknowns, e.g. tri_complementary at M = 2), a Lambertian pixel near a silhouette can have a
-    second normal, with another self-consistent mask, that fits its noise-free captures as well
-    as the true one; the search returns one of them, and the condition number, a local measure,
-    cannot tell. Measured on 400 noise-free points with n . v in [0.1, 0.5] under tri_complementary
-    M = 2: 41 valid, unflagged normals 1 to 26 deg off, every restart landing on the same one. The
-    ambiguity is in the data; more patterns remove it.
+    A wrong shadow mask that fits exactly is flagged only where the search finds both answers.
+    With few equations (3 M close to the 5 unknowns, e.g. tri_complementary at M = 2), a
+    Lambertian pixel near a silhouette can have a second normal, with another self-consistent
+    mask, that fits its noise-free captures as well as the true one; the search returns one of
+    them, and the condition number, a local measure, cannot tell. Measured on 400 noise-free
+    points with n . v in [0.1, 0.5] under tri_complementary M = 2: 41 valid, unflagged normals 1
+    to 26 deg off, every restart landing on the same one. Three grey patterns are the extreme
+    case (every self-consistent mask fits exactly): those pixels are searched from every start
+    and flagged ill_conditioned where two answers fit (``shadow_search.restarted_search``); on
+    a noise-free sphere on the backlit reference rig under olat M = 3, 7 of 80 pixels stayed
+    valid 11-44 deg off (19 before the check), lit by one pattern's superpixel, the other two
+    behind or on the tangent plane. The ambiguity is in the data; more patterns remove it.
     """
 
     normal: torch.Tensor
@@ -310,6 +315,25 @@ class PatternEvaluator:
             moments.write(start, stop, normalised_moments(vectors, captures, weight, scale), vectors)
         return moments
 
+    def exactly_determined(self) -> torch.Tensor:
+        """(N,) bool: pixels that every self-consistent shadow mask fits exactly. Under grey
+        patterns (each pattern's emission the same in every channel up to a scale) every channel
+        solves the same 3 x 3 system for a_c n, so with at most three usable (unsaturated)
+        captures a channel and three in some channel, the channels agree whatever the mask, and
+        the captures cannot rule out a wrong one."""
+        num_patterns = self.captures.shape[0]
+        emission = self.lighting.reshape(-1, num_patterns, 3, 4)[..., 3]  # (K, M, 3): E[m, k, c]
+        peak = emission.amax(dim=0)  # (M, 3)
+        # Each pattern's emission over the superpixels, scaled to peak 1 per channel: the same in
+        # every lit channel of a grey pattern (an unlit channel contributes no equation).
+        shape = emission / peak.clamp_min(torch.finfo(emission.dtype).tiny)
+        reference = shape[:, torch.arange(num_patterns), (peak > 0).to(torch.int8).argmax(dim=1)]  # (K, M), a lit channel's
+        grey = bool((((shape - reference[..., None]).abs() <= 1e-6 + 1e-5 * reference[..., None].abs()) | (peak == 0)).all())
+        usable = (self.equation_weight > 0).sum(dim=0)  # (3, N) captures a channel
+        if not grey:
+            return torch.zeros(usable.shape[1], dtype=torch.bool)
+        return (usable <= 3).all(dim=0) & (usable == 3).any(dim=0)
+
     def lit_condition(self, normal, albedo, condition, kink_tolerance_deg: float, condition_of=normal_condition):
         """Condition numbers (N,) of the normals (3, N) and albedo (3, N) of all N pixels without
         the equations of patterns that leave superpixels dark where they sit at a kink: a zero
@@ -371,7 +395,7 @@ def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, 
 
         initial_albedo = (captures.detach() / capture_scale).amax(dim=0).clamp_min(0)
         view = light_field.view.T.contiguous()
-        state, condition = restarted_search(evaluator, fit, initial_albedo, view, config)
+        state, condition = restarted_search(evaluator, fit, initial_albedo, view, config, exactly_determined=evaluator.exactly_determined())
         condition = evaluator.lit_condition(state.normal, state.albedo, condition, config.kink_tolerance_deg)
 
     normal, albedo = state.normal, state.albedo

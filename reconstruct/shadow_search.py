@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
-from reconstruct.pixel_solve import Moments, albedo_step, normal_condition, relative_residual, residual, tangent_basis, unit
+from reconstruct.pixel_solve import CONDITION_CAP, Moments, albedo_step, normal_condition, relative_residual, residual, tangent_basis, unit
 
 
 @dataclass(eq=False)
@@ -157,8 +157,16 @@ def restart_normals(view: torch.Tensor) -> list[torch.Tensor]:
     return starts
 
 
+AMBIGUOUS_DEG = 2.0
+"""Normals further apart than this (degrees) are different answers of an exactly determined pixel."""
+AMBIGUOUS_RESIDUAL = 1e-3
+"""Relative residual (``relative_residual``) up to which any fit counts as exact: float32's
+cancellation floor. A pixel's alternative answer is as good as its chosen one if its relative
+residual is at most the larger of this and 4 times the chosen one's."""
+
+
 def restarted_search(evaluator, fit, initial_albedo, view, config, condition_of=normal_condition,
-                     restart_residual: float | None = None) -> tuple[ShadowSearch, torch.Tensor]:
+                     restart_residual: float | None = None, exactly_determined: torch.Tensor | None = None) -> tuple[ShadowSearch, torch.Tensor]:
     """``shadow_search`` from the view directions, restarted where the result is doubtful.
 
     With ill-conditioned pattern sets or near silhouettes a search can settle on a wrong
@@ -176,6 +184,12 @@ def restarted_search(evaluator, fit, initial_albedo, view, config, condition_of=
             exceeds it are searched again too: a fit that matches its captures exactly for every
             mask (Woodham's per-channel fit with three captures a channel) settles on wrong
             masks at good condition numbers, which only the residual of the shared normal shows.
+        exactly_determined: (N,) bool, pixels whose captures no shadow mask can fail to fit
+            (grey patterns with three usable captures a channel: every channel's 3 x 3 system is
+            solved exactly, and the channels agree for any mask). They are searched from every
+            start, and where two self-consistent normals over ``AMBIGUOUS_DEG`` apart fit as well
+            (``AMBIGUOUS_RESIDUAL``), the captures cannot tell them apart: the condition number
+            is set to ``CONDITION_CAP`` (the pixel is flagged ill_conditioned).
 
     Returns:
         (state, condition (N,)) with the condition numbers of the chosen normals.
@@ -185,14 +199,26 @@ def restarted_search(evaluator, fit, initial_albedo, view, config, condition_of=
     doubtful = (condition > config.restart_condition) | ~state.converged
     if restart_residual is not None:
         doubtful |= relative_residual(state.normal, state.moments) > restart_residual
+    if exactly_determined is not None:
+        doubtful |= exactly_determined
     doubtful = torch.nonzero(doubtful).squeeze(1)
     if doubtful.numel() == 0:
         return state, condition
     starts = restart_normals(view[:, doubtful])
     replicated = doubtful.repeat(len(starts))
     attempts = shadow_search(_Replicated(evaluator, replicated), fit, initial_albedo[:, replicated], torch.cat(starts, dim=1), config)
+    first_normal, first_residual = state.normal[:, doubtful], relative_residual(state.normal[:, doubtful], state.moments.subset(doubtful))
     best_objective, best_start = attempts.objective.reshape(len(starts), -1).min(dim=0)
     better = torch.nonzero(best_objective < state.objective[doubtful]).squeeze(1)
     state.take(doubtful[better], attempts, best_start[better] * doubtful.numel() + better)
     condition[doubtful] = condition_of(state.normal[:, doubtful], state.albedo[:, doubtful], state.moments.moment[..., doubtful])
+    if exactly_determined is not None:
+        # Every answer found, the first search's included, against the chosen one.
+        normals = torch.cat([first_normal, attempts.normal], dim=1).reshape(3, len(starts) + 1, -1)
+        residuals = torch.cat([first_residual, relative_residual(attempts.normal, attempts.moments)]).reshape(len(starts) + 1, -1)
+        chosen = state.normal[:, doubtful]
+        as_good = residuals <= torch.clamp_min(4.0 * relative_residual(chosen, state.moments.subset(doubtful)), AMBIGUOUS_RESIDUAL)
+        apart = (normals * chosen[:, None]).sum(0) < math.cos(math.radians(AMBIGUOUS_DEG))
+        ambiguous = exactly_determined[doubtful] & (as_good & apart).any(0)
+        condition[doubtful[ambiguous]] = CONDITION_CAP
     return state, condition

@@ -21,8 +21,10 @@ Two kinds of input:
 - any M >= 3 patterns (typically grey), through the same effective lighting vectors as
   ``photometric_stereo``.
 In both cases saturated captures are dropped and attached shadows (l_k . n <= 0) are removed by the
-same damped shadow search as the analytic method (``reconstruct.shadow_search``). The solver runs
-without gradients.
+same damped shadow search as the analytic method (``reconstruct.shadow_search``). With three
+grey patterns every self-consistent shadow mask fits exactly: such pixels are searched from every
+start and flagged ill_conditioned where two answers fit, but an answer no start reaches goes
+unnoticed (``photometric_stereo.PSResult``). The solver runs without gradients.
 """
 from __future__ import annotations
 
@@ -160,7 +162,9 @@ def _solve_block(evaluator, light_field: LightField, config, dark_and_saturated=
     # stacks overdetermine each channel; their poor fits are specular, which restarts do not help.
     patterns = isinstance(evaluator, PatternEvaluator)
     restart_residual = config.residual_threshold if patterns else None
-    state, condition = restarted_search(evaluator, fit, torch.ones((3, count), dtype=view.dtype), view, config, woodham_condition, restart_residual)
+    exactly_determined = evaluator.exactly_determined() if patterns else None
+    state, condition = restarted_search(evaluator, fit, torch.ones((3, count), dtype=view.dtype), view, config, woodham_condition, restart_residual,
+                                        exactly_determined)
     if patterns:  # OLAT stacks leave shadowed equations out of the moments already
         condition = evaluator.lit_condition(state.normal, state.albedo, condition, config.kink_tolerance_deg, woodham_condition)
     dark, saturated = evaluator.capture_flags() if dark_and_saturated is None else dark_and_saturated
