@@ -78,6 +78,12 @@ def is_whole_number(value, low: int = 0, high: float = float("inf")) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool) and low <= value <= high
 
 
+def is_real_number(value) -> bool:
+    """Whether ``value`` is a Python or numpy int or float (not a bool, a string or a tensor)
+    that is not NaN."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and not math.isnan(value)
+
+
 def check_field_types(config) -> None:
     """Refuse fields of a settings dataclass whose values do not match their annotation: an
     ``int`` field must hold a whole number, a ``float`` field a real number that is not NaN (an
@@ -87,7 +93,7 @@ def check_field_types(config) -> None:
         annotation = field.type if isinstance(field.type, str) else getattr(field.type, "__name__", "")
         if annotation == "int" and not is_whole_number(value, -(2**63), 2**63 - 1):
             raise InputError(f"{type(config).__name__}: {field.name} must be a whole number, got {value!r}")
-        if annotation == "float" and (isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) or math.isnan(value)):
+        if annotation == "float" and not is_real_number(value):
             raise InputError(f"{type(config).__name__}: {field.name} must be a number, got {value!r}")
 
 

@@ -335,6 +335,8 @@ def simulate(
             raise InputError(f"exposure: a tensor exposure must be a floating-point scalar, got shape {tuple(exposure.shape)} {exposure.dtype}")
         gain, exposure = exposure, float(exposure.detach())
     elif exposure != "auto":
+        if isinstance(exposure, bool):  # float(True) is 1.0: a flag passed where a number belongs
+            raise InputError(f"exposure must be a positive number or 'auto', got {exposure!r}")
         try:
             exposure = float(exposure)
         except (TypeError, ValueError):

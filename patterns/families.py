@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from capture_sim.errors import InputError, check_array, check_seed
+from capture_sim.errors import InputError, check_array, check_seed, is_real_number
 
 DEFAULT_SHARPNESS = 1e6
 """Slope of sigmoid edges in 1/cells: binary (to float rounding) for every cell centre more than
@@ -52,9 +52,9 @@ cells overflows float32 and the sigmoid gives NaN."""
 
 
 def check_sharpness(sharpness, name: str = "sharpness") -> None:
-    """Raise ``InputError`` unless ``sharpness`` lies in (0, MAX_SHARPNESS]."""
-    if not 0 < sharpness <= MAX_SHARPNESS:
-        raise InputError(f"{name} must be positive and at most {MAX_SHARPNESS:g} per cell, got {sharpness}")
+    """Raise ``InputError`` unless ``sharpness`` is a number in (0, MAX_SHARPNESS]."""
+    if not (is_real_number(sharpness) and 0 < sharpness <= MAX_SHARPNESS):
+        raise InputError(f"{name} must be positive and at most {MAX_SHARPNESS:g} per cell, got {sharpness!r}")
 
 
 PRESETS = ("default", "ddps")
@@ -730,6 +730,8 @@ def default_vector(
             shown = ", ".join(list(index)[:12]) + (", ..." if len(index) > 12 else "")
             raise InputError(f"{name} has no parameter {key!r}; parameters: {shown}")
         param = params[index[key]]
+        if not is_real_number(value):
+            raise InputError(f"{name}: {key} must be a number, got {value!r}")
         value = float(value)
         if not param.low <= value <= param.high:
             raise InputError(f"{name}: {key} = {value:g} is outside its bounds [{param.low:g}, {param.high:g}]")

@@ -52,10 +52,13 @@ def save_patterns(path: str | Path, patterns, meta: dict | None = None) -> None:
     Args:
         path: output file, named .npz (``check_pattern_output``).
         patterns: (M, R, C, 3) display set values in [0, 1] (numpy array or torch tensor).
-        meta: JSON-serialisable description: family, parameters, rig, how the patterns were made.
+        meta: JSON-serialisable dict describing family, parameters, rig, how the patterns were
+            made (non-finite numbers are written as null).
     """
     check_pattern_output(path)
     values = validate_patterns(patterns)
+    if meta is not None and not isinstance(meta, dict):  # load_patterns would refuse the file
+        raise InputError(f"pattern meta must be a dict, got {type(meta).__name__}")
     try:
         meta_json = strict_json(meta or {})
     except (TypeError, ValueError) as err:

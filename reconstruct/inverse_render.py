@@ -36,7 +36,7 @@ from typing import Callable
 
 import torch
 
-from capture_sim.errors import InputError, check_array, check_field_types
+from capture_sim.errors import InputError, check_array, check_field_types, is_whole_number
 from reconstruct.basis_render import NORM_FLOOR, RENDER_CHUNK_PIXELS, EmissionPlan, ShadingGeometry, render_under_patterns, shade_and_contract, shading_geometry
 from reconstruct.fit_start import InitialEstimate, cluster_albedo, grid_neighbours, initial_estimate, least_squares_albedos
 
@@ -346,6 +346,8 @@ def _check_fit_inputs(captures, emission, points, lights, pixel_index, height, w
         raise InputError("captures, emission, points, lights and pixel_index must be torch tensors")
     if not (captures.is_floating_point() and emission.is_floating_point()):
         raise InputError("captures and emission must be floating-point torch tensors")
+    if not (is_whole_number(height, 1) and is_whole_number(width, 1)):
+        raise InputError(f"height and width must be positive whole numbers, got {height!r} x {width!r}")
     index = torch.as_tensor(pixel_index)
     if index.is_floating_point() or index.dtype == torch.bool or index.unique().numel() != index.numel():
         raise InputError("pixel_index must hold distinct integer pixel indices")

@@ -193,6 +193,8 @@ def solve_ps_unrolled(captures, emission, points, lights, falloff, config: Unrol
     # Shape only: reach is geometry from ``light_reach`` (finite by construction), and a finiteness
     # scan of its K x N values would cost more than a tenth of a training step.
     check_array("reach", reach, (lights.shape[0], num_pixels), finite=False)
+    if not (isinstance(reach, torch.Tensor) and reach.is_floating_point()):
+        raise InputError("reach must be a floating-point torch tensor (from light_reach)")
     # The light field keeps the weights pixel-major, as ``light_reach`` stores them (a view then).
     field = LightField.from_weights(points, lights, reach.to(dtype).T.contiguous(), config.chunk_pixels)
     scale = emission_scale(emission)  # keeps the squared terms in range whatever the radiance units

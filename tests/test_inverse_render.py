@@ -528,6 +528,9 @@ def test_fit_bad_input_raises(small_scene):
         wrong[position] = bad
         with pytest.raises(InputError, match="is not positive and finite" if position == 4 else None):
             fit_inverse_render(*wrong, FitConfig(iterations=1))
+    for height, width in ((float(scene.height), float(scene.width)), (-scene.height, -scene.width)):  # torch's TypeError; a product that fits
+        with pytest.raises(InputError, match="positive whole numbers"):
+            fit_inverse_render(*arguments[:6], height, width, FitConfig(iterations=1))
 
 
 def test_initial_estimate_on_patterns_is_finite_and_unit(small_scene):

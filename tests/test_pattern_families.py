@@ -120,6 +120,10 @@ def test_bad_arguments_raise():
         make_patterns("olat", 4, hi=1.5)
     with pytest.raises(InputError, match="sharpness"):
         make_patterns("mono_complementary", 4, sharpness=0.0)
+    with pytest.raises(InputError, match="lo must be a number, got 'a'"):  # was float()'s ValueError
+        make_patterns("mono_gradient", 4, lo="a")
+    with pytest.raises(InputError, match="sharpness must be positive"):  # was a TypeError from the comparison
+        make_patterns("mono_gradient", 4, sharpness="4")
 
 
 def test_generate_rejects_bad_vectors():

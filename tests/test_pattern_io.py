@@ -112,6 +112,10 @@ def test_meta_must_be_json(tmp_path):
     with pytest.raises(InputError, match="JSON"):
         save_patterns(tmp_path / "set.npz", _patterns(1), {"rig": object()})
     assert not (tmp_path / "set.npz").exists()
+    for meta in ("made by hand", [1, 2], 42):  # JSON, but not a dict: load_patterns would refuse the file
+        with pytest.raises(InputError, match="must be a dict"):
+            save_patterns(tmp_path / "set.npz", _patterns(1), meta)
+        assert not (tmp_path / "set.npz").exists()
 
 
 def test_non_finite_meta_and_json_outputs_are_strict_json(tmp_path):

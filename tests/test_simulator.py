@@ -211,6 +211,8 @@ def test_bad_inputs_raise_clear_errors(tiny_rig):
         light_transport(bad)
     with pytest.raises(InputError, match="exposure"):
         simulate(torch.rand(1, tiny_rig.rows, tiny_rig.cols, 3), transport, tiny_rig, exposure=-1.0)
+    with pytest.raises(InputError, match="exposure must be a positive number"):  # float(True) would be 1
+        simulate(torch.rand(1, tiny_rig.rows, tiny_rig.cols, 3), transport, tiny_rig, exposure=True)
     other_rig = tiny_rig.replace(light_positions=tiny_rig.light_positions[:1], backlight=tiny_rig.backlight[:1])
     with pytest.raises(InputError, match="lights"):
         simulate(torch.rand(1, 1, 3, 3), transport, other_rig)

@@ -1,7 +1,9 @@
 import numpy as np
+import pytest
 import torch
 
 from capture_sim.display import display_emission
+from capture_sim.errors import InputError
 from capture_sim.rig import load_rig
 from capture_sim.synth import lambertian_sphere
 from reconstruct import lighting as lighting_module
@@ -170,6 +172,8 @@ def test_precomputed_reach_and_chunks_give_the_same_solution():
     torch.testing.assert_close(reach, falloff(distance) / distance)
     chunked, _ = solve_ps_unrolled(captures, emission, pixels.points, lights, falloff, UnrolledPSConfig(chunk_pixels=100), reach=reach)
     torch.testing.assert_close(chunked, plain)
+    with pytest.raises(InputError, match="floating-point torch tensor"):  # numpy passed the shape check, then failed in .to
+        solve_ps_unrolled(captures, emission, pixels.points, lights, falloff, reach=reach.numpy())
 
 
 def test_pixels_that_see_every_light_skip_the_shadow_test_without_changing_the_solution(monkeypatch):
