@@ -281,16 +281,18 @@ def _remove_empty(folders: list[Path]) -> None:
 def exclusive_output(path: str | Path, command: str):
     """Hold an exclusive lock on the output ``path`` for the block: a second run writing the same
     output at the same time (whose checkpoint or files would silently replace this one's) fails at
-    once with ``InputError``. The lock is the hidden file ``.<name>.lock`` beside ``path``, locked
+    once with ``InputError``. The lock is the hidden file ``.<stem>.lock`` beside ``path``, locked
     with ``flock`` (released by the system if the process dies, so never stale) and removed at the
-    end. Where ``fcntl`` does not exist (Windows) the block runs unlocked."""
+    end: named by the stem, as the side files of a command's output are (``a.ckpt.pt`` and
+    ``a.config.json`` of ``a.npz``), so that ``a.npz`` and ``a.NPZ`` share it. Where ``fcntl``
+    does not exist (Windows) the block runs unlocked."""
     try:
         import fcntl
     except ImportError:
         yield
         return
     path = Path(path)
-    lock_path = path.with_name(f".{path.name}.lock")
+    lock_path = path.with_name(f".{path.stem}.lock")
     check_replaceable(lock_path)
     created = _missing_folders(lock_path.parent)
     while True:

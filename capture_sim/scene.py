@@ -247,14 +247,16 @@ def save_scene(scene: Scene, path: str | Path, compressed: bool = True) -> None:
 
 
 def scene_paths(paths) -> list[Path]:
-    """Expand files and folders (every ``*.npz`` inside, sorted) into a list of scene files."""
+    """Expand files and folders (every ``*.npz`` inside, sorted, hidden files left out) into a
+    list of scene files. Hidden ``.npz`` files are temporary files of an interrupted atomic write
+    (``capture_sim.atomic``) or a system's side files (macOS ``._name.npz``), not scenes."""
     found: list[Path] = []
     for entry in paths:
         entry = Path(entry)
         if entry.is_dir():
-            files = sorted(entry.glob("*.npz"))
+            files = sorted(path for path in entry.glob("*.npz") if not path.name.startswith("."))
             if not files:
-                splits = [split for split in ("train", "test") if any((entry / split).glob("*.npz"))]
+                splits = [split for split in ("train", "test") if any(not path.name.startswith(".") for path in (entry / split).glob("*.npz"))]
                 hint = f"; a synthesised scene set: pass {' or '.join(str(entry / split) for split in splits)}" if splits else ""
                 raise InputError(f"no scene .npz files in folder {entry}{hint}")
             found.extend(files)

@@ -485,6 +485,38 @@ def test_ctrl_c_gives_one_line_with_the_resume_hint(tmp_path, scene_file, capsys
     assert capsys.readouterr().err.strip() == "displex: interrupted"
 
 
+TERMINATED_TRAINING = """
+import os, signal, sys, time
+import train.learn
+from train.cli import run
+
+def terminated(config, out, **kwargs):
+    staging = out.parent / ".staging.test"
+    staging.mkdir()
+    try:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)
+    finally:
+        staging.rmdir()  # the clean-up a Ctrl-C runs, which SIGTERM used to skip
+train.learn.train_patterns = terminated
+sys.exit(run(sys.argv[1:]))
+"""
+
+
+def test_sigterm_is_an_interruption_with_its_clean_up_and_hint(tmp_path, scene_file):
+    """``kill``, ``timeout`` and job schedulers send SIGTERM: the command cleans up as on a Ctrl-C
+    and says how to resume, with the shell's status for SIGTERM (143). It used to die at once,
+    leaving staging folders, temporary files and a search's partial trace short."""
+    import subprocess
+
+    command = ["train", "--steps", "1", "--scenes", str(scene_file), "--out", str(tmp_path / "k.npz")]
+    done = subprocess.run([sys.executable, "-c", TERMINATED_TRAINING, *command], cwd=Path(__file__).parent.parent,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 143, done.stderr
+    assert done.stderr.strip().splitlines()[-1] == "displex: terminated; no checkpoint was written yet; rerun the same command to start again"
+    assert not (tmp_path / ".staging.test").exists()
+
+
 def test_ctrl_c_in_search_points_to_the_partial_trace(tmp_path, scene_file, capsys, monkeypatch):
     from train.search import partial_trace_path
 

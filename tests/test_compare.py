@@ -681,6 +681,64 @@ def test_ctrl_c_during_parallel_evaluation_stops_the_workers(scenes, monkeypatch
     assert time.perf_counter() - began < 30 and not multiprocessing.active_children()
 
 
+WORKERS_OF_A_KILLED_PARENT = """
+import os, sys, time
+import numpy as np
+import train.compare as compare
+from capture_sim.rig import load_rig
+from patterns.families import make_patterns
+from train.compare_methods import Method
+from train.search import prepare_scenes
+from tests.test_compare import SIZE, tiny_config
+
+scenes, pids = sys.argv[1], sys.argv[2]
+def slow_job(*args):
+    with open(os.path.join(pids, str(os.getpid())), "w"):
+        pass
+    time.sleep(120)
+compare._evaluate_job = slow_job  # the forked workers inherit it
+methods = [Method(name, "heuristic", name, name, 2, make_patterns(name, 2).numpy()) for name in ("tri_complementary", "tri_gradient")]
+test_scenes = prepare_scenes([os.path.join(scenes, "test")], "test", load_rig(), SIZE, 0)
+compare.measure_methods(methods, test_scenes, tiny_config(__import__("pathlib").Path(scenes), eval_workers=2), (1.0,), progress=False)
+"""
+
+
+def test_evaluation_workers_end_with_a_parent_killed_without_clean_up(scenes, tmp_path):
+    """SIGKILL (or the OOM killer) gives the parent no chance to stop its workers: they used to
+    finish every job for nobody (70 s on a 2-core machine after the parent died)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    pids = tmp_path / "pids"
+    pids.mkdir()
+    parent = subprocess.Popen([sys.executable, "-c", WORKERS_OF_A_KILLED_PARENT, str(scenes), str(pids)], cwd=Path(__file__).parent.parent)
+    try:
+        deadline = time.monotonic() + 120
+        while len(list(pids.iterdir())) < 2 and parent.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        workers = [int(path.name) for path in pids.iterdir()]
+        assert len(workers) == 2, parent.poll()
+    finally:
+        parent.send_signal(signal.SIGKILL)
+        parent.wait()
+
+    def alive(pid):
+        try:
+            return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
+        except (FileNotFoundError, IndexError):
+            return False
+
+    deadline = time.monotonic() + 10
+    while any(map(alive, workers)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    left = [pid for pid in workers if alive(pid)]
+    for pid in left:
+        os.kill(pid, signal.SIGKILL)
+    assert not left
+
+
 def test_an_error_in_a_parallel_evaluation_job_reaches_the_caller(scenes, monkeypatch):
     import multiprocessing
 
@@ -1153,3 +1211,12 @@ def test_missing_compare_configs_and_odd_scene_paths_are_named_plainly(tmp_path)
         scene_paths([tmp_path / "fifo"])
     with pytest.raises(InputError, match="scene path not found"):
         scene_paths([tmp_path / "gone.npz"])
+    # A hidden .npz is an interrupted atomic write's temporary file (or macOS's ._name.npz), not a scene.
+    folder = tmp_path / "set"
+    folder.mkdir()
+    (folder / "a.npz").write_bytes(b"")
+    (folder / ".a.npz.9b8qxr63.npz").write_bytes(b"half a zip")
+    assert scene_paths([folder]) == [folder / "a.npz"]
+    (folder / "a.npz").unlink()
+    with pytest.raises(InputError, match="no scene .npz files in folder"):
+        scene_paths([folder])

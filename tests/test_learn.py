@@ -465,7 +465,10 @@ def test_a_second_run_on_the_same_output_is_refused(tmp_path, scene_dirs):
     with exclusive_output(out, "training run"):
         with pytest.raises(InputError, match=f"another training run is writing {out} right now"):
             train_patterns(config, out, progress=False)
-    assert not (tmp_path / ".a.npz.lock").exists()
+        # a.NPZ's checkpoint and config record would be a.npz's (they are named by the stem).
+        with pytest.raises(InputError, match="right now"):
+            train_patterns(config, tmp_path / "a.NPZ", progress=False)
+    assert not (tmp_path / ".a.lock").exists()
     train_patterns(config, out, progress=False)
     assert sorted(path.name for path in tmp_path.iterdir()) == ["a.ckpt.pt", "a.config.json", "a.npz"]
     # A run refused after taking the lock (here its start file) leaves no output folder it made.
@@ -474,7 +477,7 @@ def test_a_second_run_on_the_same_output_is_refused(tmp_path, scene_dirs):
         train_patterns(dataclasses.replace(config, init=str(tmp_path / "missing.npz")), nested, progress=False)
     assert not (tmp_path / "new").exists()
     with pytest.raises(InputError, match="File name too long"):  # the output's name is legal, its lock's is not
-        with exclusive_output(tmp_path / "new" / "folder" / ("a" * 247 + ".npz"), "training run"):
+        with exclusive_output(tmp_path / "new" / "folder" / ("a" * 251 + ".npz"), "training run"):
             pass
     assert not (tmp_path / "new").exists()
 
@@ -490,7 +493,7 @@ def test_the_output_lock_and_the_final_moves_survive_races_and_interrupts(tmp_pa
     from capture_sim.atomic import exclusive_output, staged_files
 
     out = tmp_path / "a.npz"
-    lock = tmp_path / ".a.npz.lock"
+    lock = tmp_path / ".a.lock"
     opened = []
 
     def open_then_lose_the_race(path, *args, **kwargs):

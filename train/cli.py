@@ -7,8 +7,11 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
+import threading
 import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 from capture_sim.atomic import check_output_folder, refuse_overwriting, separate_json, strict_json
@@ -551,9 +554,39 @@ def _show_warning(message, category, filename, lineno, file=None, line=None, _de
         _default(message, category, filename, lineno, file, line)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, ``timeout``, a job scheduler, ``docker stop``), raised where a Ctrl-C
+    would be: the same clean-up runs (staging folders, evaluation workers, a search's partial
+    trace) and the same resume hint is printed."""
+
+
+def _raise_terminated(_number, _frame):
+    raise Terminated()
+
+
+@contextmanager
+def _sigterm_as_interrupt():
+    """SIGTERM raises ``Terminated`` for the block, unless someone else set its handler (``run``
+    called in-process by a program with its own) or this is not the main thread (where Python
+    cannot set handlers); without it the process died at once, its clean-up skipped."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupted_status(interrupt: KeyboardInterrupt) -> tuple[str, int]:
+    """('interrupted', 130) for a Ctrl-C, ('terminated', 143) for SIGTERM: the shell's statuses."""
+    return ("terminated", 143) if isinstance(interrupt, Terminated) else ("interrupted", 130)
+
+
 def run(argv: list[str] | None = None) -> int:
     """Run one command; returns 0 on success, 2 on bad input (after printing one error line), 130
-    when interrupted by Ctrl-C (one line; commands that resume say how)."""
+    when interrupted by Ctrl-C and 143 by SIGTERM (one line; commands that resume say how)."""
     forget_warnings()  # each command says each of its warn_once messages once
     # Under a strict stdout (e.g. en_US.UTF-8), a path that is not valid UTF-8 would fail its
     # report line after the command's work: it is printed escaped instead, as on stderr, and the
@@ -569,10 +602,12 @@ def run(argv: list[str] | None = None) -> int:
     with warnings.catch_warnings():  # restores the warning hook afterwards (run is also called in-process)
         warnings.showwarning = _show_warning
         try:
-            return _run(argv)
-        except KeyboardInterrupt:  # before a command started (building the parser, importing torch)
-            print("\ndisplex: interrupted", file=sys.stderr)
-            return 130
+            with _sigterm_as_interrupt():
+                return _run(argv)
+        except KeyboardInterrupt as interrupt:  # before a command started (building the parser, importing torch)
+            word, status = _interrupted_status(interrupt)
+            print(f"\ndisplex: {word}", file=sys.stderr)
+            return status
         finally:
             if relaxed:
                 stdout.reconfigure(errors="strict")
@@ -596,11 +631,12 @@ def _handle(args) -> int:
     """Run the parsed command; the exit status and its one-line messages are those of ``run``."""
     try:
         args.handler(args)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as interrupt:
         hint = getattr(args, "interrupted", None)
         hint = hint(args) if callable(hint) else hint
-        print(f"\ndisplex: interrupted{'; ' + one_line(hint) if hint else ''}", file=sys.stderr)
-        return 130  # the shell's status for a SIGINT
+        word, status = _interrupted_status(interrupt)
+        print(f"\ndisplex: {word}{'; ' + one_line(hint) if hint else ''}", file=sys.stderr)
+        return status
     except InputError as err:
         print(f"displex: error: {one_line(err)}", file=sys.stderr)
         return 2

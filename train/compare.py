@@ -19,11 +19,13 @@ reused) by ``train.compare_methods``; this module measures them and writes the o
 """
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import json
 import math
 import multiprocessing
 import multiprocessing.connection
+import os
 import signal
 import time
 import warnings
@@ -149,11 +151,25 @@ _WORKER_STATE: dict = {}
 """Scenes, pixel subsets and solver settings of the evaluation workers (inherited by fork)."""
 
 
-def _init_worker() -> None:
+PR_SET_PDEATHSIG = 1
+"""Linux prctl option: the signal the kernel sends a process when its parent exits."""
+
+
+def _init_worker(parent: int) -> None:
     # Forked children must not enter the parent's OpenMP pool (as torch's DataLoader workers).
     torch.set_num_threads(1)
     # Ctrl-C reaches the whole process group: the parent stops the workers (``_evaluate_in_workers``).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # A worker ends quietly on SIGTERM, not with the parent's clean-up (``train.cli.Terminated``).
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    # A parent that dies without stopping its workers (SIGKILL, the OOM killer) takes them along:
+    # on Linux the kernel kills them; elsewhere a worker stops before its next job (``_worker_main``).
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    except (OSError, AttributeError):  # no prctl (macOS) or no C library handle
+        pass
+    if os.getppid() != parent:  # the parent died before the kernel knew to tell
+        os._exit(0)
 
 
 def _evaluate_keyed(job: tuple) -> tuple:
@@ -162,12 +178,15 @@ def _evaluate_keyed(job: tuple) -> tuple:
     return key, _evaluate_job(*arguments)
 
 
-def _worker_main(jobs: list, connection) -> None:
-    """A forked evaluation worker: runs its share of the jobs and sends ("result", (key, metrics))
-    per job, or ("error", exception) and stops."""
-    _init_worker()
+def _worker_main(jobs: list, connection, parent: int) -> None:
+    """A forked evaluation worker of the process ``parent``: runs its share of the jobs and sends
+    ("result", (key, metrics)) per job, or ("error", exception) and stops; stops early if the
+    parent is gone (its pipe may still have a reader: other workers inherit its read end)."""
+    _init_worker(parent)
     try:
         for job in jobs:
+            if os.getppid() != parent:
+                return
             connection.send(("result", _evaluate_keyed(job)))
     except Exception as error:  # the parent re-raises it (an InputError stays one clear line)
         try:
@@ -195,7 +214,7 @@ def _evaluate_in_workers(jobs: list, workers: int, on_result: Callable[[tuple, l
         for index in range(workers):
             share = jobs[index::workers]
             receiver, sender = context.Pipe(duplex=False)
-            process = context.Process(target=_worker_main, args=(share, sender), daemon=True)
+            process = context.Process(target=_worker_main, args=(share, sender, os.getpid()), daemon=True)
             processes.append(process)  # before start: a Ctrl-C during the start must still stop it
             pending[receiver] = len(share)
             process.start()
