@@ -209,6 +209,13 @@ def test_damaged_or_foreign_checkpoints_are_refused(tmp_path, scene_dirs):
     torch.save({"logits": torch.zeros(3)}, tmp_path / "foreign.ckpt.pt")
     with pytest.raises(InputError, match="not a displex training checkpoint"):
         train_patterns(config, tmp_path / "foreign.npz", progress=False)
+    # The config kept but the patterns or the optimiser edited: one line, not a RuntimeError in copy_.
+    state = torch.load(tmp_path / "a.ckpt.pt", weights_only=True)
+    for name, edit, what in (("other_m", {"logits": state["logits"][:1]}, "its patterns"), ("nan", {"logits": state["logits"] * math.nan}, "its patterns"),
+                             ("optimiser", {"optimiser": {"state": {}, "param_groups": []}}, "its optimiser state")):
+        torch.save({**state, **edit}, tmp_path / f"{name}.ckpt.pt")
+        with pytest.raises(InputError, match=f"is damaged: {what} do(es)? not fit its config"):
+            train_patterns(config, tmp_path / f"{name}.npz", progress=False)
     longer = _config(scene_dirs, steps=3, val_every=0)
     with pytest.raises(InputError, match=r"another config \(steps differ\); pass --fresh"):
         train_patterns(longer, tmp_path / "a.npz", progress=False)

@@ -451,10 +451,17 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
     if checkpoint_mode == "fresh" and checkpoint.exists():
         checkpoint.unlink()
     if state is not None:
+        stored = state["logits"]
+        # The config matched; values that do not fit it mean an edited or corrupted file.
+        if not (isinstance(stored, torch.Tensor) and stored.shape == logits.shape and bool(torch.isfinite(stored).all())):
+            raise InputError(f"checkpoint {checkpoint} is damaged: its patterns do not fit its config; {_AFRESH}")
         with torch.no_grad():
-            logits.copy_(state["logits"])
-        optimiser.load_state_dict(state["optimiser"])
-        scheduler.load_state_dict(state["scheduler"])
+            logits.copy_(stored)
+        try:
+            optimiser.load_state_dict(state["optimiser"])
+            scheduler.load_state_dict(state["scheduler"])
+        except (ValueError, KeyError, TypeError, RuntimeError):
+            raise InputError(f"checkpoint {checkpoint} is damaged: its optimiser state does not fit its config; {_AFRESH}") from None
         start_step, val_history = state["step"], state["val_history"]
         loss_value = state.get("loss", float("nan"))
         earlier_seconds = state.get("seconds", 0.0)
