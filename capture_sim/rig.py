@@ -168,6 +168,19 @@ def check_falloff(falloff) -> None:
         raise InputError(f"falloff must be a function of distance in metres (e.g. capture_sim.rig.Falloff()), got {falloff!r}")
 
 
+def falloff_at(falloff, distance: torch.Tensor) -> torch.Tensor:
+    """``falloff(distance)`` as a tensor of ``distance``'s shape: a number (a constant falloff) is
+    expanded, any other shape refused with ``InputError`` (a result that broadcast, (N, 1) for
+    (N, K) distances, would weight every light alike). Values are not checked."""
+    values = torch.as_tensor(falloff(distance))
+    if values.dim() == 0:
+        return values.expand(distance.shape)
+    if values.shape != distance.shape:
+        raise InputError(f"falloff returned shape {tuple(values.shape)} for distances of shape {tuple(distance.shape)}; "
+                         "it must map each distance to one factor")
+    return values
+
+
 def checked_falloff(falloff, distance: torch.Tensor) -> torch.Tensor:
     """The falloff factors at ``distance``, refused unless positive and finite (DESIGN section 3: a
     fitted falloff can be negative or infinite at distances its fit did not cover).
@@ -186,7 +199,7 @@ def checked_falloff(falloff, distance: torch.Tensor) -> torch.Tensor:
     """
     check_falloff(falloff)
     wide = distance.to(torch.promote_types(distance.dtype, torch.float32))
-    values = torch.as_tensor(falloff(wide), dtype=wide.dtype).expand(wide.shape)
+    values = falloff_at(falloff, wide).to(wide.dtype)
     if not bool(torch.isfinite(values).all()) or bool((values <= 0).any()):
         name = falloff.describe() if isinstance(falloff, Falloff) else "falloff"
         lo, hi = float(distance.min()), float(distance.max())

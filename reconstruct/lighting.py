@@ -30,7 +30,7 @@ import torch
 
 from capture_sim.errors import InputError, check_array
 from capture_sim.geometry import view_directions
-from capture_sim.rig import Falloff, check_falloff
+from capture_sim.rig import Falloff, check_falloff, falloff_at
 
 SYMMETRIC_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 """(row, column) of the 6 stored entries of a symmetric 3x3 matrix: xx, yy, zz, xy, xz, yz."""
@@ -135,7 +135,7 @@ class LightField:
                 torch.mul(inverse, inverse, out=weights[block]).mul_(inverse)
                 continue
             distance = squared.sqrt_()
-            weight = falloff(distance) / distance
+            weight = falloff_at(falloff, distance) / distance
             usable = torch.isfinite(weight) & (weight > 0)
             unusable = ~usable.all(1)
             if bool((unusable & ~bad[block]).any()):

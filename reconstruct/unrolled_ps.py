@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import torch
 
 from capture_sim.errors import InputError, check_array, check_field_types
-from capture_sim.rig import check_falloff
+from capture_sim.rig import check_falloff, falloff_at
 from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, finite_albedo, lighting_matrix, lighting_moments
 from reconstruct.pixel_solve import put_pixels, take_pixels
 from reconstruct.unrolled_alternation import alternate, dot3
@@ -142,7 +142,7 @@ def light_reach(points: torch.Tensor, lights: torch.Tensor, falloff) -> torch.Te
         inverse = torch.rsqrt(square)
         return (inverse * inverse * inverse).T  # f / d = d^-3 without a square root or pow
     distance = square.sqrt()
-    reach = falloff(distance) / distance
+    reach = falloff_at(falloff, distance) / distance
     # DESIGN section 3: a fitted falloff can have a pole and change sign inside the working range.
     if not bool((torch.isfinite(reach) & (reach > 0)).all()):
         raise InputError(f"falloff is not positive and finite over light distances {float(distance.min()):.3f}..{float(distance.max()):.3f} m")

@@ -229,6 +229,13 @@ def test_bad_inputs_raise():
 
     with pytest.raises(InputError, match="falloff must be a function of distance"):
         solve_ps_unrolled(captures, emission, points, lights, None)
+    # One factor per distance: a result that broadcast weighted every light alike, all pixels valid.
+    first_light_only = lambda distance: 1.0 / distance[..., :1] ** 2  # noqa: E731
+    for solver in (solve_ps, solve_ps_unrolled, solve_woodham):
+        with pytest.raises(InputError, match=r"falloff returned shape \(\d+, 1\) for distances of shape"):
+            solver(captures, emission, points, lights, first_light_only)
+    assert torch.equal(solve_ps(captures, emission, points, lights, lambda distance: 2.0).normal,
+                       solve_ps(captures, emission, points, lights, lambda distance: torch.full_like(distance, 2.0)).normal)  # a constant: a number will do
     with pytest.raises(InputError, match="torch tensors"):
         light_reach(points.numpy(), lights.numpy(), falloff)
     with pytest.raises(InputError, match="raw counts"):
