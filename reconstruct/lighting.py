@@ -154,6 +154,15 @@ class LightField:
         points = _take_rows(self.points, rows)
         return torch.addmm(-(points * normal.T).sum(1, keepdim=True), normal.T, self._lights_t).gt_(0)
 
+    def near_tangent(self, rows, normal: torch.Tensor, sine: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """(falloff f_k (n, K), near (n, K) bool) of pixels ``rows`` (slice or indices) with
+        normals (3, n): near where |l_k . n| <= ``sine``, superpixel k within asin(sine) of the
+        pixel's tangent plane. Zero falloff where the weights were zeroed (bad geometry)."""
+        points = _take_rows(self.points, rows)
+        distance = torch.cdist(points, self.lights).clamp_min(torch.finfo(points.dtype).tiny)
+        height = torch.addmm(-(points * normal.T).sum(1, keepdim=True), normal.T, self._lights_t)  # (p_k - X) . n
+        return _take_rows(self.weights, rows) * distance, height.abs() <= sine * distance
+
     def sees_all(self, index, normal: torch.Tensor) -> torch.Tensor:
         """(n,) bool: whether pixels ``index`` ((n,) long indices, or None for all) with normals
         (3, n) see every light (``sees_all_lights``: a test on the few hull lights that never

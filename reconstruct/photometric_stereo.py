@@ -210,10 +210,12 @@ class PSResult:
     points with n . v in [0.1, 0.5] under tri_complementary M = 2: 41 valid, unflagged normals 1
     to 26 deg off, every restart landing on the same one. Three grey patterns are the extreme
     case (every self-consistent mask fits exactly): those pixels are searched from every start
-    and flagged ill_conditioned where two answers fit (``shadow_search.restarted_search``); on
-    a noise-free sphere on the backlit reference rig under olat M = 3, 7 of 80 pixels stayed
-    valid 11-44 deg off (19 before the check), lit by one pattern's superpixel, the other two
-    behind or on the tangent plane. The ambiguity is in the data; more patterns remove it.
+    and flagged ill_conditioned where two answers fit (``shadow_search.restarted_search``) or
+    where the answer sits on the tangent plane of a superpixel that carries a pattern's light
+    (``PatternEvaluator.kink_condition``). On a noise-free sphere on the backlit reference rig,
+    19 (olat M = 3) and 4 (mono_random M = 3) valid pixels were 11-111 deg off before these
+    checks; after them 0 of 42 and 1 of 11 (13 deg, condition 3400). The ambiguity is in the
+    data; more patterns remove it.
     """
 
     normal: torch.Tensor
@@ -334,6 +336,33 @@ class PatternEvaluator:
             return torch.zeros(usable.shape[1], dtype=torch.bool)
         return (usable <= 3).all(dim=0) & (usable == 3).any(dim=0)
 
+    def kink_condition(self, normal, exactly_determined, condition, kink_tolerance_deg: float) -> torch.Tensor:
+        """Condition numbers (N,) with ``CONDITION_CAP`` at the ``exactly_determined`` pixels
+        (``exactly_determined``, (N,) bool) whose normals (3, N) lie within ``kink_tolerance_deg``
+        of the tangent plane of a superpixel that gives at least ``DOMINANT_SHARE`` of some
+        pattern's unshadowed light there (per channel).
+
+        With three grey patterns, the search stops on such a kink as on an answer: whether that
+        superpixel is in front or behind changes the captures by nothing there, and an answer
+        with it behind, often far away, fits as exactly (noise-free sphere, olat M = 3 on the
+        backlit reference rig: every pixel the restarts left 11-44 deg off sat on the tangent
+        plane of one pattern's lit superpixel, as did 3 of 45 correct ones).
+        """
+        index = torch.nonzero(exactly_determined).squeeze(1)
+        if index.numel() == 0:
+            return condition
+        num_patterns = self.captures.shape[0]
+        emission = self.lighting.reshape(-1, num_patterns, 3, 4)[..., 3].reshape(-1, 3 * num_patterns)  # (K, 3 M): E[m, k, c]
+        sine = math.sin(math.radians(kink_tolerance_deg))
+        condition = condition.clone()
+        for start, stop, rows in self.field.cache_rows(index):
+            falloff, near = self.field.near_tangent(rows, normal[:, rows], sine)
+            light = falloff[:, :, None] * emission[None]  # (n, K, 3 M): each superpixel's unshadowed light
+            dominant = (light >= DOMINANT_SHARE * light.sum(1, keepdim=True).clamp_min(torch.finfo(light.dtype).tiny)).any(2)
+            kink = (near & dominant & (light.amax(2) > 0)).any(1)
+            condition[rows[kink]] = CONDITION_CAP
+        return condition
+
     def lit_condition(self, normal, albedo, condition, kink_tolerance_deg: float, condition_of=normal_condition):
         """Condition numbers (N,) of the normals (3, N) and albedo (3, N) of all N pixels without
         the equations of patterns that leave superpixels dark where they sit at a kink: a zero
@@ -372,6 +401,11 @@ class PatternEvaluator:
             condition[pixels] = torch.maximum(condition[pixels], condition_of(pixel_normal, albedo[:, pixels], moments.moment))
         return condition
 
+DOMINANT_SHARE = 0.1
+"""Share of a pattern's light at a pixel from which one superpixel's shadow decides the fit of
+an exactly determined pixel (``PatternEvaluator.kink_condition``)."""
+
+
 NEAR_FIXED_POINT = 0.2
 """Relative size of the implicit Newton step (of the albedo) up to which a not-converged pixel
 keeps the gradient of the nearby fixed point. Measured against central finite differences of the
@@ -395,8 +429,10 @@ def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, 
 
         initial_albedo = (captures.detach() / capture_scale).amax(dim=0).clamp_min(0)
         view = light_field.view.T.contiguous()
-        state, condition = restarted_search(evaluator, fit, initial_albedo, view, config, exactly_determined=evaluator.exactly_determined())
+        exactly_determined = evaluator.exactly_determined()
+        state, condition = restarted_search(evaluator, fit, initial_albedo, view, config, exactly_determined=exactly_determined)
         condition = evaluator.lit_condition(state.normal, state.albedo, condition, config.kink_tolerance_deg)
+        condition = evaluator.kink_condition(state.normal, exactly_determined, condition, config.kink_tolerance_deg)
 
     normal, albedo = state.normal, state.albedo
     if track_gradient:

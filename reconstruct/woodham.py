@@ -23,8 +23,8 @@ Two kinds of input:
 In both cases saturated captures are dropped and attached shadows (l_k . n <= 0) are removed by the
 same damped shadow search as the analytic method (``reconstruct.shadow_search``). With three
 grey patterns every self-consistent shadow mask fits exactly: such pixels are searched from every
-start and flagged ill_conditioned where two answers fit, but an answer no start reaches goes
-unnoticed (``photometric_stereo.PSResult``). The solver runs without gradients.
+start and flagged ill_conditioned where two answers fit or where the answer sits on a lit
+superpixel's tangent plane (``photometric_stereo.PSResult``). The solver runs without gradients.
 """
 from __future__ import annotations
 
@@ -167,6 +167,7 @@ def _solve_block(evaluator, light_field: LightField, config, dark_and_saturated=
                                         exactly_determined)
     if patterns:  # OLAT stacks leave shadowed equations out of the moments already
         condition = evaluator.lit_condition(state.normal, state.albedo, condition, config.kink_tolerance_deg, woodham_condition)
+        condition = evaluator.kink_condition(state.normal, exactly_determined, condition, config.kink_tolerance_deg)
     dark, saturated = evaluator.capture_flags() if dark_and_saturated is None else dark_and_saturated
     albedo = state.albedo * (state.moments.capture_scale / state.moments.lighting_scale)
     flags = {"dark": dark, "saturated": saturated, "not_converged": ~state.converged}

@@ -164,13 +164,14 @@ def test_exposure_of_the_olat_entry_point_is_a_number(sphere):
         solve_woodham_olat(sphere.olat.reshape(144, -1, 3)[:, index], sphere.points.reshape(-1, 3)[index], sphere.lights, Falloff(), exposure=True)
 
 
-@pytest.mark.parametrize("family, wrong_before", [("olat", 19), ("mono_random", 4)])
-def test_three_grey_patterns_flag_pixels_that_two_exact_answers_fit(family, wrong_before):
+@pytest.mark.parametrize("family, wrong_left", [("olat", 0), ("mono_random", 1)])
+def test_three_grey_patterns_flag_pixels_that_two_exact_answers_fit(family, wrong_left):
     """Three grey patterns solve every channel's 3 x 3 system exactly whatever the shadow mask,
     so a wrong self-consistent mask fits as well as the right one (noise-free sphere on the
     backlit reference rig: 19 (olat) and 4 (mono_random) valid, unflagged pixels 11-111 deg off).
-    Such pixels are searched from every start and flagged ill_conditioned where two answers fit.
-    Both solvers; the rest (answers the restarts never reach) is documented in PSResult."""
+    Such pixels are searched from every start and flagged ill_conditioned where two answers fit
+    (12 of the 19) or where the answer sits on a lit superpixel's tangent plane (the other 7).
+    Both solvers; what is left is documented in PSResult."""
     from capture_sim.rig import load_rig
     from capture_sim.simulator import light_transport, simulate
     from capture_sim.synth import lambertian_sphere
@@ -187,5 +188,5 @@ def test_three_grey_patterns_flag_pixels_that_two_exact_answers_fit(family, wron
     for solver in (solve_ps, solve_woodham):
         result = solver(captured.captures, captured.emission, points, rig.lights(torch.float64), rig.falloff)
         wrong = result.valid & (angular_error_deg(result.normal, truth) > 10)
-        assert int(wrong.sum()) <= wrong_before // 2, solver.__name__
+        assert int(wrong.sum()) <= wrong_left, solver.__name__
         assert int(result.valid.sum()) >= 0.1 * len(truth)
