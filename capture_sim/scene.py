@@ -246,17 +246,22 @@ def save_scene(scene: Scene, path: str | Path, compressed: bool = True) -> None:
     save_npz(path, compressed=compressed, meta=np.array(strict_json(scene.meta)), **arrays)
 
 
+def scene_files(folder: Path) -> list[Path]:
+    """The scene files of a folder: every ``*.npz`` in it, sorted, hidden ones left out (the
+    temporary files of an interrupted atomic write, ``capture_sim.atomic``, or a system's side
+    files, macOS ``._name.npz``)."""
+    return sorted(path for path in Path(folder).glob("*.npz") if not path.name.startswith("."))
+
+
 def scene_paths(paths) -> list[Path]:
-    """Expand files and folders (every ``*.npz`` inside, sorted, hidden files left out) into a
-    list of scene files. Hidden ``.npz`` files are temporary files of an interrupted atomic write
-    (``capture_sim.atomic``) or a system's side files (macOS ``._name.npz``), not scenes."""
+    """Expand files and folders (their ``scene_files``) into a list of scene files."""
     found: list[Path] = []
     for entry in paths:
         entry = Path(entry)
         if entry.is_dir():
-            files = sorted(path for path in entry.glob("*.npz") if not path.name.startswith("."))
+            files = scene_files(entry)
             if not files:
-                splits = [split for split in ("train", "test") if any(not path.name.startswith(".") for path in (entry / split).glob("*.npz"))]
+                splits = [split for split in ("train", "test") if scene_files(entry / split)]
                 hint = f"; a synthesised scene set: pass {' or '.join(str(entry / split) for split in splits)}" if splits else ""
                 raise InputError(f"no scene .npz files in folder {entry}{hint}")
             found.extend(files)

@@ -214,8 +214,10 @@ class PSResult:
     where the answer sits on the tangent plane of a superpixel that carries a pattern's light
     (``PatternEvaluator.kink_condition``). On a noise-free sphere on the backlit reference rig,
     19 (olat M = 3) and 4 (mono_random M = 3) valid pixels were 11-111 deg off before these
-    checks; after them 0 of 42 and 1 of 11 (13 deg, condition 3400). The ambiguity is in the
-    data; more patterns remove it.
+    checks; after them 0 of 42 and 1 of 11 (13 deg, condition 3400). The checks also flag
+    correct answers that cannot be told from a wrong one (olat M = 3: 61 correct valid pixels
+    before, 42 after) and cost the restarts of every such pixel. The ambiguity is in the data;
+    more patterns remove it.
     """
 
     normal: torch.Tensor
@@ -318,23 +320,34 @@ class PatternEvaluator:
         return moments
 
     def exactly_determined(self) -> torch.Tensor:
-        """(N,) bool: pixels that every self-consistent shadow mask fits exactly. Under grey
-        patterns (each pattern's emission the same in every channel up to a scale) every channel
-        solves the same 3 x 3 system for a_c n, so with at most three usable (unsaturated)
-        captures a channel and three in some channel, the channels agree whatever the mask, and
-        the captures cannot rule out a wrong one."""
+        """(N,) bool: pixels that every self-consistent shadow mask fits exactly, so that their
+        captures cannot rule out a wrong mask: grey patterns (each pattern's emission the same in
+        every informative channel up to a scale, within ``GREY_TOLERANCE``) and, in every
+        informative channel, at most three usable (unsaturated) captures, three in some, the same
+        patterns in each channel with three. Those channels then solve one 3 x 3 system for
+        a_c n, and their answers agree whatever the mask. A channel is not informative where its
+        emission is the same under every pattern (unlit, or lit by the backlight alone): its
+        equations repeat one another and fix its albedo only. The test errs towards including
+        pixels, which then only cost more search (``shadow_search.restarted_search``)."""
         num_patterns = self.captures.shape[0]
         emission = self.lighting.reshape(-1, num_patterns, 3, 4)[..., 3]  # (K, M, 3): E[m, k, c]
-        peak = emission.amax(dim=0)  # (M, 3)
-        # Each pattern's emission over the superpixels, scaled to peak 1 per channel: the same in
-        # every lit channel of a grey pattern (an unlit channel contributes no equation).
-        shape = emission / peak.clamp_min(torch.finfo(emission.dtype).tiny)
-        reference = shape[:, torch.arange(num_patterns), (peak > 0).to(torch.int8).argmax(dim=1)]  # (K, M), a lit channel's
-        grey = bool((((shape - reference[..., None]).abs() <= 1e-6 + 1e-5 * reference[..., None].abs()) | (peak == 0)).all())
-        usable = (self.equation_weight > 0).sum(dim=0)  # (3, N) captures a channel
-        if not grey:
-            return torch.zeros(usable.shape[1], dtype=torch.bool)
-        return (usable <= 3).all(dim=0) & (usable == 3).any(dim=0)
+        count = self.captures.shape[2]
+        scale = emission.abs().amax(dim=(0, 1)).clamp_min(torch.finfo(emission.dtype).tiny)  # (3,)
+        repeated = ((emission - emission[:, :1]).abs().amax(dim=(0, 1)) <= GREY_TOLERANCE * scale)  # (3,) same under every pattern
+        channels = torch.nonzero(~repeated).squeeze(1)
+        if channels.numel() == 0:
+            return torch.zeros(count, dtype=torch.bool)
+        # Each pattern's emission over the superpixels, scaled to peak 1: the same in every
+        # informative channel of a grey pattern.
+        shape = emission[..., channels] / emission[..., channels].amax(dim=0, keepdim=True).clamp_min(torch.finfo(emission.dtype).tiny)
+        if float((shape - shape[..., :1]).abs().amax()) > GREY_TOLERANCE:
+            return torch.zeros(count, dtype=torch.bool)
+        used = self.equation_weight[:, channels] > 0  # (M, C, N)
+        usable = used.sum(dim=0)  # (C, N)
+        three = usable == 3
+        patterns_of_three = (used & three[None]).any(dim=1)  # (M, N): used by some channel with three
+        same = ((used == patterns_of_three[:, None]) | ~three[None]).all(dim=1).all(dim=0)
+        return (usable <= 3).all(dim=0) & three.any(dim=0) & same
 
     def kink_condition(self, normal, exactly_determined, condition, kink_tolerance_deg: float) -> torch.Tensor:
         """Condition numbers (N,) with ``CONDITION_CAP`` at the ``exactly_determined`` pixels
@@ -401,6 +414,9 @@ class PatternEvaluator:
             condition[pixels] = torch.maximum(condition[pixels], condition_of(pixel_normal, albedo[:, pixels], moments.moment))
         return condition
 
+GREY_TOLERANCE = 2e-3
+"""Relative difference up to which two channels' emission counts as the same (float16 inputs
+round to ~5e-4)."""
 DOMINANT_SHARE = 0.1
 """Share of a pattern's light at a pixel from which one superpixel's shadow decides the fit of
 an exactly determined pixel (``PatternEvaluator.kink_condition``)."""

@@ -184,12 +184,13 @@ def restarted_search(evaluator, fit, initial_albedo, view, config, condition_of=
             exceeds it are searched again too: a fit that matches its captures exactly for every
             mask (Woodham's per-channel fit with three captures a channel) settles on wrong
             masks at good condition numbers, which only the residual of the shared normal shows.
-        exactly_determined: (N,) bool, pixels whose captures no shadow mask can fail to fit
-            (grey patterns with three usable captures a channel: every channel's 3 x 3 system is
-            solved exactly, and the channels agree for any mask). They are searched from every
-            start, and where two self-consistent normals over ``AMBIGUOUS_DEG`` apart fit as well
-            (``AMBIGUOUS_RESIDUAL``), the captures cannot tell them apart: the condition number
-            is set to ``CONDITION_CAP`` (the pixel is flagged ill_conditioned).
+        exactly_determined: (N,) bool, pixels whose captures no self-consistent shadow mask can
+            fail to fit (``photometric_stereo.PatternEvaluator.exactly_determined``: three grey
+            patterns). They are searched from every start (the restarts' cost, 5-10x the search
+            of three grey patterns), and where two self-consistent normals over
+            ``AMBIGUOUS_DEG`` apart fit as well (``AMBIGUOUS_RESIDUAL``), the captures cannot
+            tell them apart: the condition number is set to ``CONDITION_CAP`` (the pixel is
+            flagged ill_conditioned).
 
     Returns:
         (state, condition (N,)) with the condition numbers of the chosen normals.

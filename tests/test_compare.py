@@ -594,6 +594,10 @@ def test_demo_reuses_only_a_scene_set_of_its_own_settings(tmp_path):
     extra.write_bytes(test_files[0].read_bytes())
     assert not _scene_set_matches(tmp_path / "plain" / "index.json", rig, config)
     extra.unlink()
+    # A hidden .npz (an interrupted atomic write's temporary file) is not a scene added: the set
+    # is still reused (it was synthesised again on every run).
+    (tmp_path / "plain" / "test" / ".a.npz.9b8qxr63.npz").write_bytes(b"half a zip")
+    assert _scene_set_matches(tmp_path / "plain" / "index.json", rig, config)
     test_files[-1].unlink()
     assert not _scene_set_matches(tmp_path / "plain" / "index.json", rig, config)
 
@@ -703,6 +707,7 @@ compare.measure_methods(methods, test_scenes, tiny_config(__import__("pathlib").
 """
 
 
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads process states from /proc (Linux)")
 def test_evaluation_workers_end_with_a_parent_killed_without_clean_up(scenes, tmp_path):
     """SIGKILL (or the OOM killer) gives the parent no chance to stop its workers: they used to
     finish every job for nobody (70 s on a 2-core machine after the parent died)."""
@@ -737,6 +742,29 @@ def test_evaluation_workers_end_with_a_parent_killed_without_clean_up(scenes, tm
     for pid in left:
         os.kill(pid, signal.SIGKILL)
     assert not left
+
+
+def test_a_worker_whose_parent_is_gone_runs_no_more_jobs(monkeypatch):
+    """Where the kernel cannot end a worker with its parent (no prctl: macOS), the worker checks
+    before each job and stops."""
+    import train.compare as compare
+
+    run, sent = [], []
+
+    class Connection:
+        def send(self, message):
+            sent.append(message)
+
+        def close(self):
+            sent.append("closed")
+
+    monkeypatch.setattr(compare, "_init_worker", lambda parent: None)
+    monkeypatch.setattr(compare, "_evaluate_keyed", lambda job: run.append(job) or (job, []))
+    compare._worker_main(["a", "b"], Connection(), os.getppid())
+    assert run == ["a", "b"] and sent == [("result", ("a", [])), ("result", ("b", [])), "closed"]
+    run.clear(), sent.clear()
+    compare._worker_main(["a", "b"], Connection(), -1)  # not this process's parent
+    assert run == [] and sent == ["closed"]
 
 
 def test_an_error_in_a_parallel_evaluation_job_reaches_the_caller(scenes, monkeypatch):
@@ -876,6 +904,10 @@ def test_cost_chart_draws_failed_methods_in_a_band_and_merges_coincident_labels(
     # learned and the two searches sit at 0.1 s; the search twins coincide; failed methods get no label.
     assert sorted(annotations) == ["M=2", "M=2"], annotations
     assert FAILED_LABEL in [text.get_text() for text in ax.get_legend().get_texts()]
+    # The x axis reaches a failed method's cost, as it would a real point's (placed by x alone).
+    rows[-1] = dict(rows[-1], compute_seconds=1000.0)
+    ax = chart_mae_vs_cost(rows, "compute_seconds", "compute (s)", "speed", "caption").axes[0]
+    assert ax.get_xlim()[1] >= 1000.0
 
 
 def test_count_labels_move_aside_instead_of_covering_each_other():
@@ -911,6 +943,10 @@ def test_mae_chart_close_up_spans_the_best_methods_and_leaves_out_all_invalid_on
     assert close_up_limits([row("heuristic", 2, 40.0, invalid=1.0)]) is None
     fig = chart_mae_vs_patterns(rows, "caption")
     assert fig.axes[1].get_ylim() == pytest.approx((0.95 * 8.0, 1.4 * 10.0))
+    from train.report_charts import FAILED_LABEL
+
+    # The failure band is on the full panel; the one legend (beside the close-up) explains it.
+    assert FAILED_LABEL in [text.get_text() for text in fig.axes[1].get_legend().get_texts()]
 
 
 def test_families_section_says_what_each_family_is_and_where_every_pixel_was_invalid():

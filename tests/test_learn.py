@@ -212,7 +212,11 @@ def test_damaged_or_foreign_checkpoints_are_refused(tmp_path, scene_dirs):
     # The config kept but the patterns or the optimiser edited: one line, not a RuntimeError in copy_.
     state = torch.load(tmp_path / "a.ckpt.pt", weights_only=True)
     for name, edit, what in (("other_m", {"logits": state["logits"][:1]}, "its patterns"), ("nan", {"logits": state["logits"] * math.nan}, "its patterns"),
-                             ("optimiser", {"optimiser": {"state": {}, "param_groups": []}}, "its optimiser state")):
+                             ("optimiser", {"optimiser": {"state": {}, "param_groups": []}}, "its optimiser state"),
+                             ("moments", {"optimiser": {**state["optimiser"], "state": {0: {**state["optimiser"]["state"][0], "exp_avg": torch.zeros(5)}}}},
+                              "its optimiser state"),  # Adam loads it, then fails in its first step
+                             ("nan_moments", {"optimiser": {**state["optimiser"], "state": {0: {**state["optimiser"]["state"][0],
+                                                                                                "exp_avg_sq": state["logits"] * math.nan}}}}, "its optimiser state")):
         torch.save({**state, **edit}, tmp_path / f"{name}.ckpt.pt")
         with pytest.raises(InputError, match=f"is damaged: {what} do(es)? not fit its config"):
             train_patterns(config, tmp_path / f"{name}.npz", progress=False)

@@ -395,3 +395,43 @@ def test_complex_inputs_are_refused():
     captures = torch.zeros(2, 1, 3, dtype=torch.complex64)
     with pytest.raises(InputError, match="expected real numbers"):
         solve_ps(captures, torch.ones(2, 1, 3), torch.tensor([[0.0, 0.0, 0.5]]), torch.tensor([[0.0, 0.0, 0.0]]), Falloff())
+
+
+def test_exactly_determined_pixels_are_those_of_three_grey_patterns():
+    """Three usable captures a channel under grey patterns (channel gains, a backlit unlit
+    channel and float16 rounding allowed) make every mask fit; colour patterns, four captures,
+    or channels left with different patterns after saturation do not."""
+    from reconstruct.lighting import LightField, lighting_matrix
+    from reconstruct.photometric_stereo import PatternEvaluator
+
+    generator = torch.Generator().manual_seed(3)
+    lights = torch.tensor([[x, y, 0.0] for x in (-0.3, 0.0, 0.3) for y in (-0.2, 0.2)])
+    points = torch.tensor([[0.01 * i, 0.0, 0.5] for i in range(4)])
+    field = LightField(points, lights, Falloff(), 1e-3, 64)
+
+    def exact(grey, gains=(1.0, 0.7, 0.45), weight=None, dtype=torch.float32):
+        emission = (grey[..., None] * torch.tensor(gains)).to(dtype).float()  # (M, K, 3)
+        count = emission.shape[0]
+        weight = torch.ones(count, 3, len(points)) if weight is None else weight
+        evaluator = PatternEvaluator(field, lighting_matrix(emission, lights), torch.rand(count, 3, len(points), generator=generator), weight, torch.ones(len(points)))
+        return evaluator.exactly_determined().tolist()
+
+    grey = torch.rand(3, len(lights), generator=generator)
+    assert exact(grey) == [True] * 4
+    assert exact(grey, dtype=torch.float16) == [True] * 4  # rounded gains: still grey
+    unlit_blue = torch.cat([grey[..., None].expand(-1, -1, 2), torch.full((3, len(lights), 1), 0.02)], dim=2)  # backlight only
+    evaluator = PatternEvaluator(field, lighting_matrix(unlit_blue, lights), torch.rand(3, 3, len(points), generator=generator), torch.ones(3, 3, len(points)), torch.ones(len(points)))
+    assert evaluator.exactly_determined().tolist() == [True] * 4
+    assert exact(torch.rand(4, len(lights), generator=generator)) == [False] * 4  # four captures: a wrong mask shows
+    colour = torch.rand(3, len(lights), 3, generator=generator)
+    evaluator = PatternEvaluator(field, lighting_matrix(colour, lights), torch.rand(3, 3, len(points), generator=generator), torch.ones(3, 3, len(points)), torch.ones(len(points)))
+    assert evaluator.exactly_determined().tolist() == [False] * 4
+    # Four grey patterns, pattern c saturated in channel c: three usable each, but different ones.
+    four = torch.rand(4, len(lights), generator=generator)
+    weight = torch.ones(4, 3, len(points))
+    for channel in range(3):
+        weight[channel, channel] = 0.0
+    assert exact(four, weight=weight) == [False] * 4
+    weight[:3] = 1.0
+    weight[3] = 0.0  # the same pattern lost in every channel: three grey patterns again
+    assert exact(four, weight=weight) == [True] * 4

@@ -40,7 +40,7 @@ from capture_sim.atomic import refuse_overwriting, staged_files, write_json
 from capture_sim.display import display_emission
 from capture_sim.errors import DisplexWarning, InputError
 from capture_sim.rig import CONFIG_DIR, DEFAULT_RIG, load_rig
-from capture_sim.scene import scene_paths
+from capture_sim.scene import scene_files, scene_paths
 from capture_sim.synth import GENERATOR
 from patterns.io import names_pattern_file, save_patterns
 from train.capture import scene_exposure
@@ -504,7 +504,7 @@ def _scene_set_matches(index_path: Path, rig, config: CompareConfig) -> bool:
         listed = {(folder / entry["file"]).resolve() for split in splits.values() for entry in split}
     except (TypeError, KeyError):
         return False
-    present = {path.resolve() for split in splits for path in (folder / split).glob("*.npz")}
+    present = {path.resolve() for split in splits for path in scene_files(folder / split)}
     return listed == present
 
 

@@ -401,6 +401,26 @@ def changed_files(recorded, current: list[list]) -> str:
     return f" ({', '.join(names)})" if names else ""
 
 
+def check_state_fits(state: dict, logits: torch.Tensor, checkpoint: Path) -> None:
+    """Refuse (``InputError``) a checkpoint whose config matched but whose patterns or Adam state
+    do not fit the run's ``logits``: other shapes or non-finite values (an edited or corrupted
+    file; Adam's ``load_state_dict`` checks neither, and its first step would fail or write NaN)."""
+
+    def fits(value) -> bool:
+        return isinstance(value, torch.Tensor) and value.shape == logits.shape and bool(torch.isfinite(value).all())
+
+    if not fits(state["logits"]):
+        raise InputError(f"checkpoint {checkpoint} is damaged: its patterns do not fit its config; {_AFRESH}")
+    try:
+        moments = state["optimiser"]["state"].get(0, {})
+        usable = all(fits(value) if isinstance(value, torch.Tensor) and value.dim() > 0 else
+                     not isinstance(value, torch.Tensor) or bool(torch.isfinite(value).all()) for value in moments.values())
+    except (KeyError, TypeError, AttributeError):
+        usable = False
+    if not usable:
+        raise InputError(f"checkpoint {checkpoint} is damaged: its optimiser state does not fit its config; {_AFRESH}")
+
+
 CHECKPOINT_MODES = ("resume", "fresh", "resume_or_fresh")
 
 
@@ -440,6 +460,7 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
     if checkpoint.exists() and checkpoint_mode != "fresh":
         try:
             state = load_checkpoint(checkpoint, identity)
+            check_state_fits(state, logits, checkpoint)
         except InputError:
             if checkpoint_mode == "resume":
                 raise
@@ -451,12 +472,8 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
     if checkpoint_mode == "fresh" and checkpoint.exists():
         checkpoint.unlink()
     if state is not None:
-        stored = state["logits"]
-        # The config matched; values that do not fit it mean an edited or corrupted file.
-        if not (isinstance(stored, torch.Tensor) and stored.shape == logits.shape and bool(torch.isfinite(stored).all())):
-            raise InputError(f"checkpoint {checkpoint} is damaged: its patterns do not fit its config; {_AFRESH}")
         with torch.no_grad():
-            logits.copy_(stored)
+            logits.copy_(state["logits"])
         try:
             optimiser.load_state_dict(state["optimiser"])
             scheduler.load_state_dict(state["scheduler"])

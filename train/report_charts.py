@@ -118,6 +118,10 @@ def _mark_failed(ax, failed: list[tuple[float, dict]], peers: dict, make_room: b
     tells which failed (a method drawn nowhere else gets its legend entry here)."""
     if not failed:
         return
+    # The band's markers are placed by x only: the x axis must reach them, as it would real points.
+    low = ax.get_ylim()[0]
+    ax.update_datalim([(x, low) for x, _ in failed], updatex=True, updatey=False)
+    ax.autoscale_view(scalex=True, scaley=False)
     if make_room:
         _make_room_for_failed(ax)
     band = ax.get_xaxis_transform()  # x in data, y in axes units
@@ -221,7 +225,13 @@ def chart_mae_vs_patterns(rows: list[dict], caption: str):
     if limits is not None:
         axes[1].set_ylim(*limits)
     axes[1].set_title("Close-up of the most accurate methods")
-    axes[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    # The close-up's entries, and the failure band's of the full panel (its crossed-out mark and
+    # the methods drawn nowhere else).
+    handles, labels = axes[1].get_legend_handles_labels()
+    legend = dict(zip(labels, handles))
+    for handle, label in zip(*axes[0].get_legend_handles_labels()):
+        legend.setdefault(label, handle)
+    axes[1].legend(list(legend.values()), list(legend), fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     _caption(fig, caption)
     fig.tight_layout()
     return fig
