@@ -73,6 +73,15 @@ def test_auto_exposure_puts_percentile_at_target():
     # The nearest rank of 1000 values is the 999th: in floats, ceil(99.9 / 100 * 1000) took the 1000th,
     # so one bright outlier set the exposure.
     assert auto_exposure(torch.arange(1.0, 1001.0)) == 0.9 / 999
+    # A full-resolution stack's worth of values goes through candidates first: the same rank statistic.
+    from capture_sim.simulator import LARGE_SELECTION, auto_exposure_at
+
+    large = torch.rand(LARGE_SELECTION, generator=torch.Generator().manual_seed(5)) ** 4
+    large[::7] = 0.5  # ties
+    for percentile in (99.9, 90.0):
+        rank = -(-round(percentile * 10) * large.numel() // 1000)
+        exposure, index = auto_exposure_at(large, percentile)
+        assert exposure == 0.9 / float(torch.kthvalue(large, rank).values) == 0.9 / float(large[index])
     assert auto_exposure(torch.cat([torch.ones(999), torch.tensor([1000.0])])) == 0.9
     assert auto_exposure(torch.zeros(2, 10, 3)) == 1.0
     # A scene scaled past float32's range has no usable exposure: said, not returned as 0 or 1.
@@ -208,6 +217,10 @@ def test_bad_inputs_raise_clear_errors(tiny_rig):
     with pytest.raises(InputError, match="NaN"):
         bad = _random_stack(tiny_rig)
         bad[0, 0, 0, 0] = np.nan
+        light_transport(bad)
+    with pytest.raises(InputError, match="infinite"):  # checked light by light, as NaN
+        bad = _random_stack(tiny_rig)
+        bad[-1, 0, 0, 2] = np.inf
         light_transport(bad)
     with pytest.raises(InputError, match="exposure"):
         simulate(torch.rand(1, tiny_rig.rows, tiny_rig.cols, 3), transport, tiny_rig, exposure=-1.0)
