@@ -202,10 +202,16 @@ def _check_radiance(name: str, key: str, stack: np.ndarray) -> None:
 _ARRAY_KEYS = ("olat", "mask", "K_cam", "light_positions", "normal", "depth", "diffuse", "specular")
 
 
-def load_scene(path: str | Path) -> Scene:
-    """Read and validate a scene interchange ``.npz`` (DESIGN section 7)."""
+SEPARATED_STACKS = ("diffuse", "specular")
+
+
+def load_scene(path: str | Path, separated: bool = True) -> Scene:
+    """Read and validate a scene interchange ``.npz`` (DESIGN section 7). With ``separated``
+    False the polarisation-separated ``diffuse`` and ``specular`` stacks are not read (for work
+    on the OLAT stack alone: each is as large as it, 1 GB at full resolution in float32)."""
     path = Path(path)
-    arrays = read_arrays(path, "scene", keys=(*_ARRAY_KEYS, "meta"))
+    keys = _ARRAY_KEYS if separated else tuple(key for key in _ARRAY_KEYS if key not in SEPARATED_STACKS)
+    arrays = read_arrays(path, "scene", keys=(*keys, "meta"))
     if isinstance(arrays, np.ndarray):
         raise InputError(f"{path}: a plain .npy array, but a scene is an .npz of named arrays (README: Scene files)")
     meta = read_meta(arrays, path, "scene")

@@ -339,6 +339,13 @@ def test_write_scene_set_writes_loadable_scenes_and_index(rig, tmp_path):
     scene = load_scene(tmp_path / "set" / entry["file"])
     assert scene.name == entry["name"] and scene.olat.shape == (rig.num_lights, 12, 14, 3)
     assert scene.diffuse is not None and scene.normal is not None and scene.depth is not None
+    # Commands that use the OLAT stack alone leave the separated stacks unread (2 of 3 stacks' memory).
+    olat_only = load_scene(tmp_path / "set" / entry["file"], separated=False)
+    assert olat_only.diffuse is None and olat_only.specular is None and np.array_equal(olat_only.olat, scene.olat)
+    from train.scene_sets import resolve_scenes
+
+    assert all(s.diffuse is None for s in resolve_scenes([tmp_path / "set" / "test"], "test", rig, separated=False))
+    assert all(s.diffuse is None for s in resolve_scenes([], "test", rig, (8, 10), separated=False))
     assert sorted(p.name for p in (tmp_path / "set" / "train").iterdir()) == sorted(
         f"{e['name']}.npz" for e in index["splits"]["train"])
 

@@ -71,7 +71,7 @@ def run_evaluate(config: EvaluateConfig, progress: bool = True) -> dict:
     # The outputs whose names do not depend on the scenes are checked before the scenes are read
     # (the default ones are synthesised, seconds here); the scenes' own maps are checked below.
     refuse_overwriting([("--json", json_path), *_out_files(config.out, [])], known_inputs, folders=[("--out", config.out)])
-    scenes = resolve_scenes(config.scenes, "test", rig)
+    scenes = resolve_scenes(config.scenes, "test", rig, separated=False)  # the OLAT stacks alone
     for scene in scenes:  # a later scene's refusal must not wait for the earlier scenes' solves
         require_ground_truth(scene)
         rig_for_scene(rig, scene)

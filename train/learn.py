@@ -464,11 +464,11 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
         except InputError:
             if checkpoint_mode == "resume":
                 raise
-    train_scenes = training_samplers([scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed)], config)
+    train_scenes = training_samplers([scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed, separated=False)], config)
     # Validating a user's training scenes against the synthetic defaults would report a number about
     # scenes nobody asked for: without val_scenes, only the default training set validates.
     validate = bool(config.val_scenes) or not config.scenes
-    val_scenes = [scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.val_scenes, "test", rig, config.scene_size, config.scene_seed)] if validate else []
+    val_scenes = [scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.val_scenes, "test", rig, config.scene_size, config.scene_seed, separated=False)] if validate else []
     if checkpoint_mode == "fresh" and checkpoint.exists():
         checkpoint.unlink()
     if state is not None:

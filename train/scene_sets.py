@@ -1,6 +1,7 @@
 """Where commands get their scenes: files and folders given by the user, or the default synthetic set."""
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from capture_sim.errors import InputError, is_whole_number
@@ -53,8 +54,11 @@ def default_split(split: str, rig: Rig, size: tuple[int, int] | None = None, see
     return list(_default_set(rig, height, width, seed)[split])
 
 
-def resolve_scenes(paths, split: str, rig: Rig, size: tuple[int, int] | None = None, seed: int = 0) -> list[Scene]:
-    """Scenes from files/folders in ``paths``, or the default set's ``split`` when ``paths`` is empty."""
+def resolve_scenes(paths, split: str, rig: Rig, size: tuple[int, int] | None = None, seed: int = 0,
+                   separated: bool = True) -> list[Scene]:
+    """Scenes from files/folders in ``paths``, or the default set's ``split`` when ``paths`` is
+    empty; without ``separated``, without their diffuse and specular stacks (``load_scene``)."""
     if paths:
-        return [load_scene(path) for path in scene_paths(paths)]
-    return default_split(split, rig, size, seed)
+        return [load_scene(path, separated) for path in scene_paths(paths)]
+    scenes = default_split(split, rig, size, seed)
+    return scenes if separated else [dataclasses.replace(scene, diffuse=None, specular=None) for scene in scenes]

@@ -382,7 +382,7 @@ def minimise(
 
 def prepare_scenes(paths, split: str, rig, size: tuple[int, int], seed: int) -> list[ScenePixels]:
     """Scenes with true normals, from files/folders or the default synthetic ``split``."""
-    scenes = [scene_pixels(scene, rig, require_normals=True) for scene in resolve_scenes(tuple(paths), split, rig, size, seed)]
+    scenes = [scene_pixels(scene, rig, require_normals=True) for scene in resolve_scenes(tuple(paths), split, rig, size, seed, separated=False)]
     if not scenes:
         raise InputError("no scenes to search on")
     return scenes
