@@ -329,9 +329,11 @@ class PatternEvaluator:
         emission is the same under every pattern (unlit, or lit by the backlight alone): its
         equations repeat one another and fix its albedo only. The test errs towards including
         pixels, which then only cost more search (``shadow_search.restarted_search``)."""
-        num_patterns = self.captures.shape[0]
+        num_patterns, count = self.captures.shape[0], self.captures.shape[2]
+        # The common cases at once: too few captures, or more than three and none saturated.
+        if num_patterns < 3 or (num_patterns > 3 and bool((self.equation_weight > 0).all())):
+            return torch.zeros(count, dtype=torch.bool)
         emission = self.lighting.reshape(-1, num_patterns, 3, 4)[..., 3]  # (K, M, 3): E[m, k, c]
-        count = self.captures.shape[2]
         scale = emission.abs().amax(dim=(0, 1)).clamp_min(torch.finfo(emission.dtype).tiny)  # (3,)
         repeated = ((emission - emission[:, :1]).abs().amax(dim=(0, 1)) <= GREY_TOLERANCE * scale)  # (3,) same under every pattern
         channels = torch.nonzero(~repeated).squeeze(1)
