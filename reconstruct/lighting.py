@@ -151,8 +151,11 @@ class LightField:
         """(n, K) shadow masks of pixels ``rows`` with normals (3, n) as 1.0 / 0.0 in the working
         dtype: p_k . n - X . n > 0. The comparison runs in place on the float product (a bool
         mask would need a type promotion in every later product)."""
-        points = _take_rows(self.points, rows)
-        return torch.addmm(-(points * normal.T).sum(1, keepdim=True), normal.T, self._lights_t).gt_(0)
+        return self._heights(_take_rows(self.points, rows), normal).gt_(0)
+
+    def _heights(self, points: torch.Tensor, normal: torch.Tensor) -> torch.Tensor:
+        """(n, K) (p_k - X) . n of points (n, 3) with normals (3, n), metres: one matrix product."""
+        return torch.addmm(-(points * normal.T).sum(1, keepdim=True), normal.T, self._lights_t)
 
     def near_tangent(self, rows, normal: torch.Tensor, sine: float) -> tuple[torch.Tensor, torch.Tensor]:
         """(falloff f_k (n, K), near (n, K) bool) of pixels ``rows`` (slice or indices) with
@@ -160,8 +163,7 @@ class LightField:
         pixel's tangent plane. Zero falloff where the weights were zeroed (bad geometry)."""
         points = _take_rows(self.points, rows)
         distance = torch.cdist(points, self.lights).clamp_min(torch.finfo(points.dtype).tiny)
-        height = torch.addmm(-(points * normal.T).sum(1, keepdim=True), normal.T, self._lights_t)  # (p_k - X) . n
-        return _take_rows(self.weights, rows) * distance, height.abs() <= sine * distance
+        return _take_rows(self.weights, rows) * distance, self._heights(points, normal).abs() <= sine * distance
 
     def sees_all(self, index, normal: torch.Tensor) -> torch.Tensor:
         """(n,) bool: whether pixels ``index`` ((n,) long indices, or None for all) with normals

@@ -319,6 +319,10 @@ class PatternEvaluator:
             moments.write(start, stop, normalised_moments(vectors, captures, weight, scale), vectors)
         return moments
 
+    def emission(self) -> torch.Tensor:
+        """(K, M, 3) effective emission E[m, k, c] of the lighting matrix (its constant column)."""
+        return self.lighting.reshape(self.lighting.shape[0], self.captures.shape[0], 3, 4)[..., 3]
+
     def exactly_determined(self) -> torch.Tensor:
         """(N,) bool: pixels that every self-consistent shadow mask fits exactly, so that their
         captures cannot rule out a wrong mask: grey patterns (each pattern's emission the same in
@@ -333,7 +337,7 @@ class PatternEvaluator:
         # The common cases at once: too few captures, or more than three and none saturated.
         if num_patterns < 3 or (num_patterns > 3 and bool((self.equation_weight > 0).all())):
             return torch.zeros(count, dtype=torch.bool)
-        emission = self.lighting.reshape(-1, num_patterns, 3, 4)[..., 3]  # (K, M, 3): E[m, k, c]
+        emission = self.emission()
         scale = emission.abs().amax(dim=(0, 1)).clamp_min(torch.finfo(emission.dtype).tiny)  # (3,)
         repeated = ((emission - emission[:, :1]).abs().amax(dim=(0, 1)) <= GREY_TOLERANCE * scale)  # (3,) same under every pattern
         channels = torch.nonzero(~repeated).squeeze(1)
@@ -366,15 +370,15 @@ class PatternEvaluator:
         index = torch.nonzero(exactly_determined).squeeze(1)
         if index.numel() == 0:
             return condition
-        num_patterns = self.captures.shape[0]
-        emission = self.lighting.reshape(-1, num_patterns, 3, 4)[..., 3].reshape(-1, 3 * num_patterns)  # (K, 3 M): E[m, k, c]
+        emission = self.emission().flatten(1)  # (K, 3 M)
         sine = math.sin(math.radians(kink_tolerance_deg))
         condition = condition.clone()
         for start, stop, rows in self.field.cache_rows(index):
             falloff, near = self.field.near_tangent(rows, normal[:, rows], sine)
             light = falloff[:, :, None] * emission[None]  # (n, K, 3 M): each superpixel's unshadowed light
+            # The threshold is positive, so a dominant superpixel emits.
             dominant = (light >= DOMINANT_SHARE * light.sum(1, keepdim=True).clamp_min(torch.finfo(light.dtype).tiny)).any(2)
-            kink = (near & dominant & (light.amax(2) > 0)).any(1)
+            kink = (near & dominant).any(1)
             condition[rows[kink]] = CONDITION_CAP
         return condition
 
@@ -398,8 +402,7 @@ class PatternEvaluator:
         with no extra work. ``condition_of`` (normal, albedo, moment) -> condition numbers is the
         solver's own (Woodham's per-channel one, for instance).
         """
-        num_patterns = self.captures.shape[0]
-        emission = self.lighting.reshape(-1, num_patterns, 3, 4)[..., 3]  # (K, M, 3): E[m, k, c]
+        emission = self.emission()
         sparse = (emission == 0).any(dim=0)  # (M, 3): some superpixel stays dark
         zero = (self.captures <= 0) & sparse[:, :, None]
         index = torch.nonzero(zero.any(dim=(0, 1))).squeeze(1)

@@ -208,7 +208,8 @@ def restarted_search(evaluator, fit, initial_albedo, view, config, condition_of=
     starts = restart_normals(view[:, doubtful])
     replicated = doubtful.repeat(len(starts))
     attempts = shadow_search(_Replicated(evaluator, replicated), fit, initial_albedo[:, replicated], torch.cat(starts, dim=1), config)
-    first_normal, first_residual = state.normal[:, doubtful], relative_residual(state.normal[:, doubtful], state.moments.subset(doubtful))
+    if exactly_determined is not None:  # the first search's answers, before the restarts replace them
+        first_normal, first_residual = state.normal[:, doubtful], relative_residual(state.normal[:, doubtful], state.moments.subset(doubtful))
     best_objective, best_start = attempts.objective.reshape(len(starts), -1).min(dim=0)
     better = torch.nonzero(best_objective < state.objective[doubtful]).squeeze(1)
     state.take(doubtful[better], attempts, best_start[better] * doubtful.numel() + better)

@@ -409,12 +409,15 @@ def check_state_fits(state: dict, logits: torch.Tensor, checkpoint: Path) -> Non
     def fits(value) -> bool:
         return isinstance(value, torch.Tensor) and value.shape == logits.shape and bool(torch.isfinite(value).all())
 
+    def usable_moment(value) -> bool:  # Adam's per-parameter tensors, and its step count (a scalar)
+        if not isinstance(value, torch.Tensor):
+            return True
+        return fits(value) if value.dim() else bool(torch.isfinite(value).all())
+
     if not fits(state["logits"]):
         raise InputError(f"checkpoint {checkpoint} is damaged: its patterns do not fit its config; {_AFRESH}")
     try:
-        moments = state["optimiser"]["state"].get(0, {})
-        usable = all(fits(value) if isinstance(value, torch.Tensor) and value.dim() > 0 else
-                     not isinstance(value, torch.Tensor) or bool(torch.isfinite(value).all()) for value in moments.values())
+        usable = all(map(usable_moment, state["optimiser"]["state"].get(0, {}).values()))
     except (KeyError, TypeError, AttributeError):
         usable = False
     if not usable:

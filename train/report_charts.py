@@ -100,6 +100,16 @@ FAILED_SPACING = 8.5
 """Points between the markers of methods failing at one x."""
 
 
+def _legend_entries(axes) -> dict:
+    """Label -> handle of every labelled artist of ``axes``, the first of each label kept (panels
+    of one figure draw the same methods)."""
+    entries: dict = {}
+    for ax in axes:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            entries.setdefault(label, handle)
+    return entries
+
+
 def _make_room_for_failed(ax) -> None:
     """Extend the value axis upwards by ``FAILED_ROOM`` so that the failure band covers no data
     (once per shared axis: the panels of one figure share their limits)."""
@@ -227,10 +237,7 @@ def chart_mae_vs_patterns(rows: list[dict], caption: str):
     axes[1].set_title("Close-up of the most accurate methods")
     # The close-up's entries, and the failure band's of the full panel (its crossed-out mark and
     # the methods drawn nowhere else).
-    handles, labels = axes[1].get_legend_handles_labels()
-    legend = dict(zip(labels, handles))
-    for handle, label in zip(*axes[0].get_legend_handles_labels()):
-        legend.setdefault(label, handle)
+    legend = _legend_entries([axes[1], axes[0]])
     axes[1].legend(list(legend.values()), list(legend), fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     _caption(fig, caption)
     fig.tight_layout()
@@ -327,10 +334,7 @@ def chart_mae_vs_noise(results: dict, caption: str):
     for ax, points in failed.items():
         _mark_failed(ax, points, peers, make_room=False)
     axes[0, 0].set_ylabel("mean angular error (deg)")
-    legend = {}
-    for ax in axes[0]:
-        for handle, label in zip(*ax.get_legend_handles_labels()):
-            legend.setdefault(label, handle)
+    legend = _legend_entries(axes[0])
     fig.suptitle("Normal error against sensor noise (where methods fail)")
     # Axes in the top 70 %, the legend below them, the caption at the bottom: nothing overlaps.
     fig.tight_layout(rect=(0, 0.3, 1, 0.97))
