@@ -246,12 +246,17 @@ class _SaturatingClip(torch.autograd.Function):
         return grad_output * slope, None
 
 
+def _rounded(signal: torch.Tensor, levels: float) -> torch.Tensor:
+    """``signal`` rounded to multiples of 1 / ``levels``, in its dtype."""
+    # In at least float32: 2^16 - 1 levels and more overflow float16 (max 65504).
+    work = signal.to(torch.promote_types(signal.dtype, torch.float32))
+    return (torch.round(work * levels) / levels).to(signal.dtype)
+
+
 class _StraightThroughRound(torch.autograd.Function):
     @staticmethod
     def forward(ctx, signal, levels):
-        # In at least float32: 2^16 - 1 levels and more overflow float16 (max 65504).
-        work = signal.to(torch.promote_types(signal.dtype, torch.float32))
-        return (torch.round(work * levels) / levels).to(signal.dtype)
+        return _rounded(signal, levels)
 
     @staticmethod
     def backward(ctx, grad_output):
@@ -274,7 +279,9 @@ def sensor(
             from torch's global generator (``torch.manual_seed``).
 
     Returns:
-        (...) captures in [0, 1], same shape as ``signal``, in its dtype or float32 if narrower.
+        (...) captures in [0, 1], same shape (and memory layout) as ``signal``, in its dtype or
+        float32 if narrower. Without gradient, large signals run in blocks of ``SENSOR_BLOCK``
+        values along the leading axis, with the same values.
 
     Raises:
         InputError: a bit depth outside 1..16 (``rig.MAX_BIT_DEPTH``), or a generator that is not a ``torch.Generator``.
@@ -286,19 +293,68 @@ def sensor(
         raise InputError(f"generator must be a torch.Generator (e.g. torch.Generator().manual_seed(0)) or None, got {generator!r}")
     # At least float32: float16's smallest normal (6e-5) is a variance floor far above the read
     # noise's, and its spacing near 1 is coarser than 12-bit quantisation.
-    signal = signal.to(torch.promote_types(signal.dtype, torch.float32))
+    dtype = torch.promote_types(signal.dtype, torch.float32)
+    levels = None if bit_depth is None else float(2 ** int(bit_depth) - 1)
+    if not (torch.is_grad_enabled() and signal.requires_grad) and signal.dim() > 0 and signal.numel() > SENSOR_BLOCK:
+        return _sensor_in_blocks(signal, dtype, noise, levels, generator)
+    signal = signal.to(dtype)
     if noise is not None:
-        # The floor keeps the square root's gradient finite where the variance is zero (no read
-        # noise at zero signal, or a noise model scaled to 0).
-        std = torch.sqrt(noise.shot * signal.clamp_min(0.0) + noise.read_std**2 + torch.finfo(signal.dtype).tiny)
-        # Drawn in float32 whatever the working dtype: torch.randn gives one seed different numbers
-        # in float32 and float64, and the same seed must give the same noise at either precision.
-        z = torch.randn(signal.shape, generator=generator, dtype=torch.float32).to(signal.dtype)
-        signal = signal + std * z
+        signal = signal + _noise_std(signal, noise) * _standard_normal(signal.numel(), generator, dtype).view(signal.shape)
     captured = _SaturatingClip.apply(signal, CLIP_SHARPNESS)
-    if bit_depth is not None:
-        captured = _StraightThroughRound.apply(captured, float(2 ** int(bit_depth) - 1))
+    if levels is not None:
+        captured = _StraightThroughRound.apply(captured, levels)
     return captured
+
+
+SENSOR_BLOCK = 1 << 22
+"""Values per block of ``sensor`` without gradient (16 MB in float32): a full-resolution OLAT
+capture (144 x 313 344 x 3 values) then needs its output and a few blocks, not six full-size
+temporaries (+3 GB)."""
+
+
+def _noise_std(signal: torch.Tensor, noise: NoiseModel) -> torch.Tensor:
+    # The floor keeps the square root's gradient finite where the variance is zero (no read
+    # noise at zero signal, or a noise model scaled to 0).
+    return torch.sqrt(noise.shot * signal.clamp_min(0.0) + noise.read_std**2 + torch.finfo(signal.dtype).tiny)
+
+
+def _standard_normal(count: int, generator: torch.Generator | None, dtype: torch.dtype) -> torch.Tensor:
+    # Drawn in float32 whatever the working dtype: torch.randn gives one seed different numbers
+    # in float32 and float64, and the same seed must give the same noise at either precision.
+    return torch.randn(count, generator=generator, dtype=torch.float32).to(dtype)
+
+
+def _draw_blocks(count: int, per_row: int) -> list[tuple[int, int]]:
+    """(start, stop) blocks of ``count`` rows of ``per_row`` values, about ``SENSOR_BLOCK`` values
+    each: a multiple of 16 values, but for the last, which holds 16 values or more (a shorter
+    tail joins the block before it)."""
+    unit = 16 // math.gcd(16, per_row)  # rows per whole number of groups of 16 values
+    rows = max(unit, SENSOR_BLOCK // per_row // unit * unit)
+    blocks = [[start, min(start + rows, count)] for start in range(0, count, rows)]
+    if len(blocks) > 1 and (blocks[-1][1] - blocks[-1][0]) * per_row < 16:
+        tail = blocks.pop()
+        blocks[-1][1] = tail[1]
+    return [tuple(block) for block in blocks]
+
+
+def _sensor_in_blocks(signal, dtype, noise, levels, generator) -> torch.Tensor:
+    """``sensor`` without gradient, block by block along the leading axis (of the flattened signal
+    when it is contiguous): the same operations in the same order on every value, and the noise
+    drawn block by block from the one generator, in the order of one whole draw, with only a few
+    blocks of temporaries. torch's CPU normal sampler transforms its uniform draws in groups of 16,
+    so blocks of whole groups (``_draw_blocks``) continue one draw exactly (tests/test_simulator.py
+    checks the values against the whole draw's)."""
+    rows = signal.reshape(-1) if signal.is_contiguous() else signal
+    out = torch.empty_like(rows, dtype=dtype)  # the input's memory layout: no transposing copy
+    for start, stop in _draw_blocks(rows.shape[0], rows[0].numel()):
+        block = rows[start:stop].to(dtype, copy=True)
+        if noise is not None:
+            block = block + _noise_std(block, noise) * _standard_normal(block.numel(), generator, dtype).view(block.shape)
+        block.clamp_(0.0, 1.0)
+        if levels is not None:
+            block = _rounded(block, levels)
+        out[start:stop] = block
+    return out.view(signal.shape)
 
 
 @dataclass(frozen=True, eq=False)

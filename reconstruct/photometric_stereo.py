@@ -246,10 +246,13 @@ def capture_flags(captures: torch.Tensor, config):
         dark (N,) bool, saturated (N,) bool.
     """
     captures = captures.detach()
-    saturated_equation = captures >= config.saturation_threshold
-    brightest = captures.amax(dim=(0, 1))
-    scale = captures.abs().amax(dim=(0, 1)).clamp_min(torch.finfo(captures.dtype).tiny ** 0.5)
-    return (~saturated_equation).to(captures.dtype), scale, brightest < config.dark_threshold, saturated_equation.any(dim=(0, 1))
+    # Reductions, not |I| or comparison tensors: with an OLAT stack (M = K) each full-size
+    # temporary would take as much memory as the captures.
+    darkest, brightest = captures.aminmax(dim=0)
+    darkest, brightest = darkest.amin(dim=0), brightest.amax(dim=0)
+    scale = torch.maximum(brightest, -darkest).clamp_min(torch.finfo(captures.dtype).tiny ** 0.5)
+    equation_weight = torch.lt(captures, config.saturation_threshold).to(captures.dtype)
+    return equation_weight, scale, brightest < config.dark_threshold, brightest >= config.saturation_threshold
 
 
 def finalise(normal, albedo, condition, residual, flags: dict, field_: LightField, config) -> PSResult:
@@ -348,12 +351,15 @@ class PatternEvaluator:
         shape = emission[..., channels] / emission[..., channels].amax(dim=0, keepdim=True).clamp_min(torch.finfo(emission.dtype).tiny)
         if float((shape - shape[..., :1]).abs().amax()) > GREY_TOLERANCE:
             return torch.zeros(count, dtype=torch.bool)
-        used = self.equation_weight[:, channels] > 0  # (M, C, N)
-        usable = used.sum(dim=0)  # (C, N)
+        usable = self.equation_weight.sum(dim=0)[channels]  # (C, N) counts (weights are 0 or 1), with no (M, C, N) temporary
         three = usable == 3
+        candidate = (usable <= 3).all(dim=0) & three.any(dim=0)
+        if not bool(candidate.any()):  # e.g. an OLAT stack with a few saturated captures
+            return candidate
+        used = self.equation_weight[:, channels] > 0  # (M, C, N)
         patterns_of_three = (used & three[None]).any(dim=1)  # (M, N): used by some channel with three
         same = ((used == patterns_of_three[:, None]) | ~three[None]).all(dim=1).all(dim=0)
-        return (usable <= 3).all(dim=0) & three.any(dim=0) & same
+        return candidate & same
 
     def kink_condition(self, normal, exactly_determined, condition, kink_tolerance_deg: float) -> torch.Tensor:
         """Condition numbers (N,) with ``CONDITION_CAP`` at the ``exactly_determined`` pixels
@@ -404,7 +410,10 @@ class PatternEvaluator:
         """
         emission = self.emission()
         sparse = (emission == 0).any(dim=0)  # (M, 3): some superpixel stays dark
-        zero = (self.captures <= 0) & sparse[:, :, None]
+        if not bool(sparse.any()):
+            return condition
+        zero = self.captures <= 0
+        zero &= sparse[:, :, None]
         index = torch.nonzero(zero.any(dim=(0, 1))).squeeze(1)
         if index.numel() == 0:
             return condition
@@ -448,7 +457,7 @@ def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, 
         def fit(albedo, moments):
             return alternate(albedo, moments, config.damping, config.tolerance_deg, config.max_alternations)
 
-        initial_albedo = (captures.detach() / capture_scale).amax(dim=0).clamp_min(0)
+        initial_albedo = (captures.detach().amax(dim=0) / capture_scale).clamp_min(0)  # = max of I / scale: the scale is positive
         view = light_field.view.T.contiguous()
         exactly_determined = evaluator.exactly_determined()
         state, condition = restarted_search(evaluator, fit, initial_albedo, view, config, exactly_determined=exactly_determined)

@@ -8,10 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from capture_sim.errors import MAX_THREADS, DisplexWarning, InputError
 from capture_sim.rig import load_rig
 from capture_sim.scene import load_scene, save_scene
+from capture_sim.simulator import auto_exposure
 from capture_sim.synth import synthesize_scene
 from patterns.io import save_patterns
 from train.cli import run
@@ -53,6 +55,9 @@ def test_simulate_matches_numpy_from_meta(tmp_path, scene_file, kind, exposure):
     if kind == "white":
         assert (captures == 1.0).any(), "clipping must be visible"
     mask = np.load(scene_file)["mask"]
+    if exposure == "auto":  # set by the object's pixels, not the background's
+        radiance = np.einsum("mkc,khwc->mhwc", emitted, olat)[:, mask]
+        assert meta["exposure"] == pytest.approx(auto_exposure(torch.as_tensor(radiance, dtype=torch.float32)), rel=1e-5)
     assert meta["saturated_fraction"] == pytest.approx(float((captures[:, mask] >= 1.0).mean()))  # of the object, not the background
     assert (out / "contact_sheet.png").is_file() and len(list(out.glob("capture_*.png"))) == len(values)
 

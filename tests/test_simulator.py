@@ -350,3 +350,43 @@ def test_panel_aspect_follows_the_panel_pixels_unless_stated():
         for _ in range(2):  # ... but a warning raised as an error is not counted as said
             with pytest.raises(DisplexWarning):
                 rig_from_dict(odd, "desk")
+
+
+@pytest.mark.parametrize("shape, layout", [((37, 11, 3), None), ((1001, 3), None), ((3, 50, 7), (1, 2, 0)), ((2, 3, 1001), (2, 0, 1))])
+def test_sensor_without_gradient_works_in_blocks_with_the_values_of_one_draw(monkeypatch, shape, layout):
+    """Without gradient, ``sensor`` runs in blocks of about SENSOR_BLOCK values (a full-resolution
+    OLAT capture took +3 GB of full-size temporaries) and draws the noise block by block: the values,
+    dtype and memory layout must be those of the one-piece path (the gradient path)."""
+    import capture_sim.simulator as simulator
+
+    drawn = []
+    draw = simulator._standard_normal
+    monkeypatch.setattr(simulator, "_standard_normal", lambda count, *rest: drawn.append(count) or draw(count, *rest))
+    monkeypatch.setattr(simulator, "SENSOR_BLOCK", 64)
+    signal = torch.rand(shape, generator=torch.Generator().manual_seed(1)) * 1.2 - 0.1
+    if layout is not None:
+        signal = signal.permute(*layout)
+    for noise, bits, dtype in ((NoiseModel(1e-3, 1e-2), 12, torch.float32), (None, 8, torch.float32), (NoiseModel(), None, torch.float64), (NoiseModel(), 10, torch.float16)):
+        drawn.clear()
+        typed = signal.to(dtype)
+        whole = sensor(typed.clone().requires_grad_(), noise, bits, torch.Generator().manual_seed(3)).detach()
+        if noise is not None:
+            assert drawn == [typed.numel()]
+        drawn.clear()
+        with torch.no_grad():
+            blocked = sensor(typed, noise, bits, torch.Generator().manual_seed(3))
+        assert torch.equal(blocked, whole) and blocked.dtype == whole.dtype and blocked.stride() == whole.stride()
+        if noise is not None:
+            assert len(drawn) > 1 and sum(drawn) == typed.numel()
+            assert all(count % 16 == 0 for count in drawn[:-1]) and drawn[-1] >= 16 and max(drawn) <= 64 + 16 * 3 * 11
+
+
+def test_sensor_blocks_cover_the_rows_in_whole_groups_of_16_values():
+    from capture_sim.simulator import SENSOR_BLOCK, _draw_blocks
+
+    for count, per_row in ((1, 1), (17, 1), (SENSOR_BLOCK + 5, 1), (3 * SENSOR_BLOCK + 20, 1), (144, 313_344 * 3), (1000, 3), (7, SENSOR_BLOCK * 2 + 1)):
+        blocks = _draw_blocks(count, per_row)
+        assert blocks[0][0] == 0 and blocks[-1][1] == count
+        assert all(left[1] == right[0] for left, right in zip(blocks, blocks[1:]))
+        assert all((stop - start) * per_row % 16 == 0 for start, stop in blocks[:-1])
+        assert len(blocks) == 1 or (blocks[-1][1] - blocks[-1][0]) * per_row >= 16

@@ -40,7 +40,7 @@ from reconstruct.relight import TEST_EVERY, VALIDATION_EVERY, olat_emission, rel
 from train.invrender_figures import write_outputs
 from train.learn import tensorboard_folder_name
 from train.scene_pixels import scene_pixels
-from train.simulate_command import parse_exposure, resolve_exposure
+from train.simulate_command import parse_exposure
 from train.torch_threads import torch_threads
 
 GEOMETRY_CHOICES = ("auto", "near", "far")
@@ -168,8 +168,8 @@ def _prepare_data(config: InvRenderConfig, scene, rig, pixels, split) -> _Data:
             check_patterns_match_rig(values, rig.rows, rig.cols, rig.name, config.patterns)
             pattern_set = torch.as_tensor(values, dtype=torch.float32)
             setting = parse_exposure(str(config.exposure), rig)
-            exposure = resolve_exposure(setting, pattern_set, scene, rig)
-            capture = simulate(pattern_set, pixels.transport, rig, exposure=exposure, noise=noise_model, bit_depth=bits, generator=generator)
+            # simulate's auto exposure runs over the transport's pixels: the scene's masked ones.
+            capture = simulate(pattern_set, pixels.transport, rig, exposure=setting, noise=noise_model, bit_depth=bits, generator=generator)
             captures, emission, exposure = capture.captures, capture.emission, capture.exposure
             description = {"patterns": str(config.patterns), "M": int(values.shape[0]), "pattern_meta": pattern_meta}
     peak = float(emission.amax())

@@ -14,8 +14,8 @@ from capture_sim.atomic import check_output_folder, refuse_overwriting, save_npy
 from capture_sim.errors import InputError, check_seed
 from capture_sim.png import write_png
 from capture_sim.rig import DEFAULT_RIG, Rig, load_rig, rig_file
-from capture_sim.scene import Scene, load_scene, rig_for_scene
-from capture_sim.simulator import auto_exposure, display_emission, light_transport, noise_free_radiance, simulate
+from capture_sim.scene import load_scene, rig_for_scene
+from capture_sim.simulator import LightTransport, auto_exposure, display_emission, light_transport, noise_free_radiance, simulate
 from patterns.io import check_patterns_match_rig, load_patterns
 from train.figures import for_display, image_grid, save_figure
 from train.scene_pixels import warn_if_black_inside_mask
@@ -67,13 +67,13 @@ def parse_exposure(text: str, rig: Rig | None = None) -> float | str:
     return value
 
 
-def resolve_exposure(exposure, patterns: torch.Tensor, scene: Scene, rig: Rig) -> float:
-    """A fixed exposure as given, or auto exposure over the scene's masked pixels."""
+def resolve_exposure(exposure, patterns: torch.Tensor, transport: LightTransport, mask: np.ndarray, rig: Rig) -> float:
+    """A fixed exposure as given, or auto exposure over the masked pixels ((H, W) bool ``mask``) of
+    the whole-image ``transport`` (the background must not set the object's exposure)."""
     if exposure != "auto":
         return float(exposure)
-    masked = light_transport(scene.olat, scene.mask)
     emitted = display_emission(patterns, rig.backlight_flat(), rig.gamma, rig.scale)
-    return auto_exposure(noise_free_radiance(emitted, masked))
+    return auto_exposure(noise_free_radiance(emitted, transport)[:, torch.as_tensor(mask.reshape(-1))])
 
 
 def run_simulate(config: SimulateConfig) -> dict:
@@ -95,10 +95,10 @@ def run_simulate(config: SimulateConfig) -> dict:
     refuse_overwriting([("output", out / name) for name in ("captures.npy", "meta.json", "contact_sheet.png", *names)],
                        [("scene file", config.scene), ("pattern file", config.patterns), ("rig file", rig_file(config.rig))])
     setting = parse_exposure(str(config.exposure), rig)
-    exposure = resolve_exposure(setting, patterns, scene, rig)
     noise_free = config.noise == "off"
     with torch.no_grad():
         transport = light_transport(scene.olat)
+        exposure = resolve_exposure(setting, patterns, transport, scene.mask, rig)
         capture = simulate(
             patterns,
             transport,
