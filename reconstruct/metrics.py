@@ -92,8 +92,8 @@ def normal_metrics(estimate: torch.Tensor, truth: torch.Tensor, mask: torch.Tens
 
 def _check_images(prediction, truth, mask) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The inputs of ``psnr`` and ``ssim`` as tensors, checked."""
-    check_array("prediction", prediction, ("...", "H", "W", 3))
-    check_array("truth", truth, tuple(prediction.shape))
+    check_array("prediction", prediction, ("...", "H", "W", 3), finite=False)
+    check_array("truth", truth, tuple(prediction.shape), finite=False)
     prediction, truth, mask = torch.as_tensor(prediction), torch.as_tensor(truth), torch.as_tensor(mask)
     check_array("mask", mask, tuple(prediction.shape[-3:-1]))
     if mask.dtype != torch.bool:
@@ -102,8 +102,12 @@ def _check_images(prediction, truth, mask) -> tuple[torch.Tensor, torch.Tensor, 
         raise InputError("mask selects no pixels")
     if prediction.numel() == 0:
         raise InputError(f"no images to compare: prediction has shape {tuple(prediction.shape)}")
+    # As in ``normal_metrics``, only masked pixels must be finite: the background may hold anything.
     for name, images in (("prediction", prediction), ("truth", truth)):
-        largest = float(images.detach().abs().max())
+        masked = images.detach()[..., mask, :]
+        if not bool(torch.isfinite(masked).all()):
+            raise InputError(f"{name}: NaN or infinite values inside the mask")
+        largest = float(masked.abs().max())
         if largest > MAX_IMAGE_VALUE:
             raise InputError(f"{name}: values up to {largest:g}, not images in full-scale units (1 = saturation); their squared errors would overflow")
     return prediction, truth, mask
@@ -122,7 +126,8 @@ def psnr(prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> f
             clipped: ``reconstruct.relight.relighting_metrics`` clips both images to [0, 1] first,
             as a sensor does, and gives another number for images that leave that range.
         truth: (..., H, W, 3) reference images.
-        mask: (H, W) bool, pixels to compare (must select at least one).
+        mask: (H, W) bool, pixels to compare (must select at least one; the others may hold
+            anything, NaN included).
 
     Returns:
         10 log10(1 / MSE), MSE pooled over the masked pixels, channels and images; capped at
@@ -141,7 +146,8 @@ def ssim(prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, wind
     Args:
         prediction: (..., H, W, 3) images, full scale 1, compared as given (see ``psnr``).
         truth: (..., H, W, 3) reference images.
-        mask: (H, W) bool, pixels to average over (must select at least one).
+        mask: (H, W) bool, pixels to average over (must select at least one; the others may
+            hold anything, NaN included).
         window_size: odd Gaussian window of the SSIM, shrunk to fit small images.
 
     Returns:
@@ -153,8 +159,9 @@ def ssim(prediction: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor, wind
     height, width = mask.shape
     window = min(int(window_size), 2 * ((min(height, width) - 1) // 2) + 1)
 
-    def to_kornia(images):  # channels-last (..., H, W, 3) -> (B, 3, H, W), zero outside the mask
-        return (images.detach().double() * mask[..., None]).reshape(-1, height, width, 3).permute(0, 3, 1, 2)
+    def to_kornia(images):  # channels-last (..., H, W, 3) -> (B, 3, H, W), zero outside the mask (NaN there too)
+        images = images.detach().double()
+        return torch.where(mask[..., None], images, images.new_zeros(())).reshape(-1, height, width, 3).permute(0, 3, 1, 2)
 
     similarity = kornia.metrics.ssim(to_kornia(prediction), to_kornia(truth), window_size=window, max_val=1.0)
     return float(similarity.permute(0, 2, 3, 1)[:, mask].mean())

@@ -83,6 +83,8 @@ def olat_emission(light_index: torch.Tensor, num_lights: int, exposure: float, d
     """
     if not exposure > 0 or not math.isfinite(exposure):
         raise InputError(f"exposure must be positive and finite, got {exposure}")
+    if exposure > torch.finfo(dtype).max:
+        raise InputError(f"exposure {exposure:g} overflows {dtype} (largest {torch.finfo(dtype).max:g}): use a smaller exposure or a wider dtype")
     index = torch.as_tensor(light_index)
     if not _holds_integers(index):
         raise InputError(f"light indices must be integers, got dtype {index.dtype}")

@@ -584,6 +584,16 @@ def test_split_lights_is_five_to_one_and_disjoint():
         split_lights(3)
 
 
+def test_olat_emission_refuses_an_exposure_its_dtype_cannot_hold():
+    """1e300 in float32 failed inside torch's conversion ("value cannot be converted"): now one
+    clear error; float64 holds it."""
+    with pytest.raises(InputError, match="exposure 1e.300 overflows torch.float32"):
+        olat_emission(torch.arange(3), 5, 1e300)
+    assert float(olat_emission(torch.arange(3), 5, 1e300, torch.float64).amax()) == 1e300
+    with pytest.raises(InputError, match="positive and finite"):
+        olat_emission(torch.arange(3), 5, float("inf"))
+
+
 def test_pooled_psnr_matches_closed_form():
     truth = torch.full((2, 10, 3), 0.5, dtype=torch.float64)
     assert pooled_psnr(truth + 0.01, truth) == pytest.approx(40.0, abs=TOL["psnr_db"])  # MSE 1e-4

@@ -131,6 +131,26 @@ def test_image_metrics_accept_numpy_and_normal_metrics_ignore_the_background():
         normal_metrics(estimate, normals, np.ones((4, 5), dtype=bool))
 
 
+def test_image_metrics_ignore_nan_outside_the_mask_as_normal_metrics_do():
+    """psnr and ssim refused NaN anywhere (and ssim's zeroing by multiplication kept it), where
+    normal_metrics ignores the background; inside the mask NaN is still refused."""
+    generator = torch.Generator().manual_seed(0)
+    truth = torch.rand(2, 12, 13, 3, generator=generator, dtype=torch.float64)
+    prediction = (truth + 0.02 * torch.randn(truth.shape, generator=generator, dtype=torch.float64)).clamp(0, 1)
+    mask = torch.ones(12, 13, dtype=torch.bool)
+    mask[:, :3] = False
+    polluted = prediction.clone()
+    polluted[:, :, :3] = float("nan")
+    polluted[0, 0, 0] = float("inf")
+    for metric in (psnr, ssim):
+        assert metric(polluted, truth, mask) == metric(prediction, truth, mask)
+        assert metric(truth, polluted, mask) == metric(truth, prediction, mask)
+        inside = polluted.clone()
+        inside[1, 5, 7, 2] = float("nan")
+        with pytest.raises(InputError, match="prediction: NaN or infinite values inside the mask"):
+            metric(inside, truth, mask)
+
+
 def test_relighting_inputs_with_repeats_or_float_indices_are_refused():
     from reconstruct.relight import olat_emission, relighting_metrics
 
