@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from capture_sim.display import display_emission
-from capture_sim.errors import InputError, check_array
+from capture_sim.errors import InputError, all_finite, check_array
 from capture_sim.rig import MAX_BIT_DEPTH, NoiseModel, Rig
 
 AUTO_EXPOSURE_PERCENTILE = 99.9
@@ -218,7 +218,7 @@ def check_exposure_range(exposure: float, *exposed: torch.Tensor) -> None:
     radiance or emission, any shape) past their dtype's range (there the radiance is inf, and
     inf * 0, an unlit pixel, NaN: the solver would report NaN captures), or is 0 in their dtype
     (every capture black: the solvers would report no emitted light)."""
-    if not all(bool(torch.isfinite(values.detach()).all()) for values in exposed):
+    if not all(all_finite(values) for values in exposed):
         raise InputError(f"exposure {exposure:g} is too large: the exposed radiance overflows {exposed[0].dtype}; use a smaller value or 'auto'")
     if float(torch.tensor(exposure, dtype=exposed[0].dtype)) == 0:  # every capture would be black
         raise InputError(f"exposure {exposure:g} is too small: it is 0 in {exposed[0].dtype}; use a larger value or 'auto'")

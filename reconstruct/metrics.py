@@ -17,7 +17,7 @@ from __future__ import annotations
 import kornia
 import torch
 
-from capture_sim.errors import InputError, check_array, is_whole_number
+from capture_sim.errors import InputError, all_finite, check_array, is_whole_number
 
 PSNR_CAP_DB = 100.0
 """PSNR of identical images is infinite; it is reported as this cap so results stay finite."""
@@ -105,7 +105,7 @@ def _check_images(prediction, truth, mask) -> tuple[torch.Tensor, torch.Tensor, 
     # As in ``normal_metrics``, only masked pixels must be finite: the background may hold anything.
     for name, images in (("prediction", prediction), ("truth", truth)):
         masked = images.detach()[..., mask, :]
-        if not bool(torch.isfinite(masked).all()):
+        if not all_finite(masked):
             raise InputError(f"{name}: NaN or infinite values inside the mask")
         largest = float(masked.abs().max())
         if largest > MAX_IMAGE_VALUE:

@@ -390,3 +390,23 @@ def test_sensor_blocks_cover_the_rows_in_whole_groups_of_16_values():
         assert all(left[1] == right[0] for left, right in zip(blocks, blocks[1:]))
         assert all((stop - start) * per_row % 16 == 0 for start, stop in blocks[:-1])
         assert len(blocks) == 1 or (blocks[-1][1] - blocks[-1][0]) * per_row >= 16
+
+
+def test_all_finite_finds_every_non_finite_value_whatever_the_dtype_and_layout():
+    """The one-pass test behind check_array (min and max, which NaN and infinities reach) must
+    agree with torch.isfinite on every dtype, position and layout."""
+    from capture_sim.errors import all_finite, check_array
+
+    for dtype in (torch.float16, torch.bfloat16, torch.float32, torch.float64):
+        base = torch.rand(5, 7, 3, dtype=dtype)
+        assert all_finite(base) and all_finite(base.permute(2, 0, 1)) and all_finite(base[:, ::2])
+        for bad in (float("nan"), float("inf"), -float("inf")):
+            for position in ((0, 0, 0), (4, 6, 2), (2, 3, 1)):
+                values = base.clone()
+                values[position] = bad
+                assert not all_finite(values) and not all_finite(values.permute(2, 0, 1))
+                with pytest.raises(InputError, match="patterns: contains NaN or infinite values"):
+                    check_array("patterns", values)
+    assert all_finite(torch.zeros(0)) and all_finite(torch.arange(4)) and all_finite(torch.ones(3, dtype=torch.bool))
+    with pytest.raises(InputError, match=r"values must lie in \[0, 1\], found \[-0.5, 2.0\]"):
+        check_array("patterns", torch.tensor([0.5, -0.5, 2.0]), value_range=(0.0, 1.0))
