@@ -22,6 +22,7 @@ import dataclasses
 import math
 import tempfile
 import time
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -212,13 +213,25 @@ def step_generator(seed: int, step: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed * 1_000_003 + step)
 
 
-def training_samplers(scenes: list[ScenePixels], config: TrainConfig) -> list[ShuffledPixels]:
-    """Each training scene's pixels shuffled once, in an order fixed by (seed, scene position)."""
+def training_samplers(scenes: Iterable[ScenePixels], config: TrainConfig) -> list[ShuffledPixels]:
+    """Each training scene's pixels shuffled once, in an order fixed by (seed, scene position).
+
+    ``scenes`` may be an iterator (``prepared_scenes``): each scene's unshuffled pixels are then
+    released once its shuffled copy is made, instead of every scene being held twice."""
     samplers = []
-    for index, pixels in enumerate(scenes):
-        state = int(np.random.SeedSequence([config.seed, 1, index]).generate_state(1)[0])
+    # Not enumerate: its reused result tuple would hold the last scene while the next is prepared.
+    for pixels in scenes:
+        state = int(np.random.SeedSequence([config.seed, 1, len(samplers)]).generate_state(1)[0])
         samplers.append(shuffle_pixels(pixels, config.pixels_per_scene, torch.Generator().manual_seed(state)))
+        del pixels  # before the next scene is prepared
     return samplers
+
+
+def prepared_scenes(scenes: list, rig) -> Iterator[ScenePixels]:
+    """``scene_pixels`` of each scene of ``scenes`` (a list it empties as it goes, so that a loaded
+    scene's arrays are released once its pixels are prepared)."""
+    while scenes:
+        yield scene_pixels(scenes.pop(0), rig, require_normals=True)
 
 
 def training_loss(logits: torch.Tensor, scenes: list[ShuffledPixels], config: TrainConfig, step: int, ps_config: UnrolledPSConfig,
@@ -467,7 +480,8 @@ def _train(config: TrainConfig, out: Path, logdir: Path | None, progress: bool, 
         except InputError:
             if checkpoint_mode == "resume":
                 raise
-    train_scenes = training_samplers([scene_pixels(s, rig, require_normals=True) for s in resolve_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed, separated=False)], config)
+    # One scene at a time: loaded, prepared, shuffled (full-resolution scenes are ~0.5 GB each).
+    train_scenes = training_samplers(prepared_scenes(resolve_scenes(config.scenes, "train", rig, config.scene_size, config.scene_seed, separated=False), rig), config)
     # Validating a user's training scenes against the synthetic defaults would report a number about
     # scenes nobody asked for: without val_scenes, only the default training set validates.
     validate = bool(config.val_scenes) or not config.scenes
