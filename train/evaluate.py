@@ -70,7 +70,9 @@ def olat_captures(pixels: ScenePixels, settings: EvalSettings, generator: torch.
         radiance = radiance[:, columns]
     rig = pixels.rig
     noisy = settings.noise_scale > 0
-    exposed = exposure * radiance
+    # Exposed pattern-major, (K, 3, N) in memory: the sensor keeps that layout, and the solvers'
+    # pixels-last (K, 3, N) captures are then a view, not a second full-size copy.
+    exposed = torch.mul(radiance.permute(0, 2, 1), exposure, out=radiance.new_empty((radiance.shape[0], 3, radiance.shape[1]))).permute(0, 2, 1)
     emission = exposure * torch.eye(pixels.transport.num_lights, dtype=radiance.dtype)[:, :, None].expand(-1, -1, 3)
     check_exposure_range(exposure, exposed, emission)
     captures = sensor(exposed, rig.noise.scaled(settings.noise_scale) if noisy else None, rig.bit_depth if noisy else None, generator)
