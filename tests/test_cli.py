@@ -1077,3 +1077,24 @@ def test_own_scene_files_from_the_user_scenario(tmp_path, scene_file, capsys, mo
     assert run(["evaluate", "--patterns", str(black), "--scenes", str(scene_file)]) == 0
     # Black patterns still show the backlight, which auto exposure lifts: four identical captures.
     assert "flagged invalid (ill_conditioned (too few or too similar captures) on 100% of the pixels)" in capsys.readouterr().err
+
+
+def test_every_option_of_every_command_has_help_text():
+    """`demo --out`, `export --patterns` / `--bit-depth` and `evaluate --method` had none: their
+    defaults were in the README only."""
+    import argparse
+
+    from train.cli import build_parser
+
+    missing = []
+
+    def walk(parser, name):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for command, sub in action.choices.items():
+                    walk(sub, f"{name} {command}")
+            elif not action.help and "-h" not in action.option_strings:
+                missing.append(f"{name} {'/'.join(action.option_strings) or action.dest}")
+
+    walk(build_parser(), "displex")
+    assert missing == []

@@ -333,7 +333,7 @@ def fake_results():
     """Results of three heuristics, two learned seeds and a search at M = 2, two noise levels."""
     def method(kind, series, mae_low, mae_high, seed=None, cost=None):
         evaluations = [{"noise_scale": noise, "mae": mae, "median": mae / 2, "under_10": 0.5, "invalid_fraction": 0.0, "exposure": 1.0,
-                        "capture_seconds": 0.88, "compute_seconds": 0.1, "reconstruct_seconds": 0.04} for noise, mae in ((0.5, mae_low), (2.0, mae_high))]
+                        "capture_seconds": 0.88, "simulate_reconstruct_seconds": 0.1, "reconstruct_seconds": 0.04} for noise, mae in ((0.5, mae_low), (2.0, mae_high))]
         return {"id": f"{series}{seed}", "kind": kind, "series": series, "label": series, "M": 2, "seed": seed, "cost_seconds": cost, "evaluations": evaluations}
 
     methods = [method("heuristic", "a", 10.0, 20.0), method("heuristic", "b", 12.0, 15.0), method("heuristic", "c", 30.0, 31.0),
@@ -353,7 +353,7 @@ def test_summary_tables_against_plain_computation():
     assert rows["learned"]["label"] == "learned" and pivot_cell(rows["learned"], "mae", 2) == "18.00 (mean of 2 seeds)"
     assert pivot_cell(rows["a"], "mae", 2) == "20.00"
     assert pivot_cell(dict(rows["a"], invalid_fraction=1.0), "mae", 2) == "20.00 (all invalid)"
-    assert pivot_cell(dict(rows["a"], invalid_fraction=1.0), "compute_seconds", 1) == "0.1"
+    assert pivot_cell(dict(rows["a"], invalid_fraction=1.0), "simulate_reconstruct_seconds", 1) == "0.1"
     assert pivot_cell(rows["a"], "reconstruct_seconds", None) == "0.040"  # a timing to two significant digits, not "0"
     assert [_seconds(value) for value in (0.2, 0.0934, 1.0, 9.96, 12.4, 250.0)] == ["0.20", "0.093", "1.0", "10", "12", "250"]
     assert pivot_cell(dict(rows["a"], invalid_fraction=0.9999), "mae", 2) == "20.00 (99.99% invalid)"  # nearly all: the placeholder
@@ -421,10 +421,10 @@ def test_run_compare_end_to_end_and_resume(scenes, tmp_path, monkeypatch):
     for method in results["methods"]:
         (evaluation,) = method["evaluations"]
         assert len(evaluation["scenes"]) == 4
-        for key in ("mae", "median", "under_5", "under_30", "invalid_fraction", "exposure", "capture_seconds", "compute_seconds", "reconstruct_seconds"):
+        for key in ("mae", "median", "under_5", "under_30", "invalid_fraction", "exposure", "capture_seconds", "simulate_reconstruct_seconds", "reconstruct_seconds"):
             assert np.isfinite(evaluation[key])
         # The report's compute time is the reconstruction's, a part of simulation plus reconstruction.
-        assert 0 < evaluation["reconstruct_seconds"] < evaluation["compute_seconds"]
+        assert 0 < evaluation["reconstruct_seconds"] < evaluation["simulate_reconstruct_seconds"]
         assert set(evaluation["flagged"]) == set(FLAG_NAMES) and all(0 <= share <= 1 for share in evaluation["flagged"].values())
         assert [scene["name"] for scene in evaluation["scenes"]] == results["test_scenes"]
         # Exposure time scales with the gain relative to the all-white display, which no pattern outshines;
@@ -868,8 +868,8 @@ def test_cost_chart_labels_its_axis_when_every_cost_is_below_a_second():
 
     rows = aggregate_rows(fake_results(), 0.5)
     for row, seconds in zip(rows, (0.15, 0.23, 0.4, 0.6, 0.86)):
-        row["compute_seconds"] = seconds
-    fig = chart_mae_vs_cost(rows, "compute_seconds", "compute (s)", "speed", "caption")
+        row["simulate_reconstruct_seconds"] = seconds
+    fig = chart_mae_vs_cost(rows, "simulate_reconstruct_seconds", "compute (s)", "speed", "caption")
     fig.canvas.draw()
     ax = fig.axes[0]
     labels = [t.get_text() for t in (*ax.xaxis.get_majorticklabels(), *ax.xaxis.get_minorticklabels()) if t.get_text()]
@@ -889,7 +889,7 @@ def test_cost_chart_draws_failed_methods_in_a_band_and_merges_coincident_labels(
     rows.append(dict(next(row for row in rows if row["series"] == "s"), series="s2", label="s2"))  # the search's twin
     rows.append(dict(rows[0], series="dead", label="dead", kind="external", mae=60.0, invalid_fraction=1.0))
     rows.append(dict(rows[0], series="nearly", label="nearly", kind="external", mae=60.0, invalid_fraction=0.9999))
-    fig = chart_mae_vs_cost(rows, "compute_seconds", "compute (s)", "speed", "caption")
+    fig = chart_mae_vs_cost(rows, "simulate_reconstruct_seconds", "compute (s)", "speed", "caption")
     ax = fig.axes[0]
     in_band = [line for line in ax.get_lines() if list(line.get_ydata()) == [FAILED_BAND]]
     crosses = [line for line in in_band if line.get_marker() == "x"]
@@ -905,8 +905,8 @@ def test_cost_chart_draws_failed_methods_in_a_band_and_merges_coincident_labels(
     assert sorted(annotations) == ["M=2", "M=2"], annotations
     assert FAILED_LABEL in [text.get_text() for text in ax.get_legend().get_texts()]
     # The x axis reaches a failed method's cost, as it would a real point's (placed by x alone).
-    rows[-1] = dict(rows[-1], compute_seconds=1000.0)
-    ax = chart_mae_vs_cost(rows, "compute_seconds", "compute (s)", "speed", "caption").axes[0]
+    rows[-1] = dict(rows[-1], simulate_reconstruct_seconds=1000.0)
+    ax = chart_mae_vs_cost(rows, "simulate_reconstruct_seconds", "compute (s)", "speed", "caption").axes[0]
     assert ax.get_xlim()[1] >= 1000.0
 
 
@@ -1012,7 +1012,7 @@ def test_external_and_searched_sets_never_share_a_style_in_one_chart():
     names = ["trigrad_copy", "ddps_M4", "e3", "e4", "e5"]
     assert sum(map(ord, names[0])) % 4 == sum(map(ord, names[1])) % 4  # the old collision
     rows += [dict(template, kind="external", series=f"external:{name}", label=name) for name in names]
-    fig = chart_mae_vs_cost(rows, "compute_seconds", "compute (s)", "speed", "caption")
+    fig = chart_mae_vs_cost(rows, "simulate_reconstruct_seconds", "compute (s)", "speed", "caption")
     styles = {line.get_label(): (to_hex(line.get_color()), line.get_marker()) for line in fig.axes[0].get_lines() if line.get_label() in names}
     assert len(styles) == len(names) and len(set(styles.values())) == len(names), styles
 
@@ -1043,7 +1043,7 @@ def test_cost_chart_heuristic_markers_grow_with_M():
 
     rows = aggregate_rows(fake_results(), 0.5)
     rows.append(dict(next(row for row in rows if row["series"] == "a"), M=4, mae=8.0))
-    fig = chart_mae_vs_cost(rows, "compute_seconds", "compute (s)", "speed", "caption.")
+    fig = chart_mae_vs_cost(rows, "simulate_reconstruct_seconds", "compute (s)", "speed", "caption.")
     heuristic_a = [line for line in fig.axes[0].get_lines() if len(line.get_ydata()) == 1 and line.get_ydata()[0] in (10.0, 8.0)]
     assert sorted(line.get_markersize() for line in heuristic_a) == list(HEURISTIC_MARKER_SIZES[:2])
     assert sum(1 for line in fig.axes[0].get_lines() if line.get_label() == "a") == 1  # one legend entry per family
@@ -1256,3 +1256,22 @@ def test_missing_compare_configs_and_odd_scene_paths_are_named_plainly(tmp_path)
     (folder / "a.npz").unlink()
     with pytest.raises(InputError, match="no scene .npz files in folder"):
         scene_paths([folder])
+
+
+def test_report_text_names_only_what_the_comparison_ran_and_tells_twin_scenes_apart():
+    """A comparison without learning or searches still defined "Cost" by them and explained the
+    learned / other ratios; scenes of two sets with the same names (other seeds) had rows nobody
+    could tell apart."""
+    from train.report import _cost_text, scene_labels
+
+    results = fake_results()
+    assert _cost_text(results) == (" Cost = wall seconds of a learning run (its steps see the training scenes only; the time includes "
+                                   "loading the held-out scenes and validating on them) or of a search.")
+    heuristics_only = dict(results, methods=[method for method in results["methods"] if method["kind"] == "heuristic"])
+    assert _cost_text(heuristics_only) == ""
+    searched = dict(results, methods=[method for method in results["methods"] if method["kind"] != "learned"])
+    assert _cost_text(searched) == " Cost = wall seconds of a search."
+    twins = {"test_scenes": ["bowl", "cup", "bowl", "cup", "disc"],
+             "test_scene_files": ["/a/s0/bowl.npz", "/a/s0/cup.npz", "/a/s1/bowl2.npz", "/a/s1/cup.npz", "/a/disc.npz"]}
+    assert scene_labels(twins) == ["bowl (bowl.npz)", "cup (/a/s0/cup.npz)", "bowl (bowl2.npz)", "cup (/a/s1/cup.npz)", "disc"]
+    assert scene_labels({"test_scenes": ["bowl", "bowl"]}) == ["bowl", "bowl"]  # results written before the files were recorded

@@ -207,7 +207,7 @@ def test_max_candidates_is_the_length_of_a_full_sweep():
 
 def test_invrender_progress_bar_counts_candidate_fits(tmp_path, monkeypatch, capsys):
     """One bar step per candidate fit: total ``max_candidates``, ending full when the sweep stops
-    early; ``progress=False`` prints nothing."""
+    early; then one over the final fit's steps (it ran silently); ``progress=False`` prints nothing."""
     import train.invrender_command as command
     from train.invrender_command import InvRenderConfig, run_invrender
 
@@ -226,14 +226,15 @@ def test_invrender_progress_bar_counts_candidate_fits(tmp_path, monkeypatch, cap
     result = run_invrender(config)
     fits = len(result["model_selection"]["curve"])
     assert result["model_selection"]["stopped_early"] and fits == 4
-    [(initial_total, bar)] = bars
+    [(initial_total, bar), (fit_total, fit_bar)] = bars  # then the final fit's steps
     assert initial_total == selection.max_candidates == 6 and bar.n == bar.total == fits
+    assert fit_total == config.iterations and fit_bar.n == fit_total
     err = capsys.readouterr().err
-    assert "model selection" in err and f"{fits}/{fits}" in err
+    assert "model selection" in err and f"{fits}/{fits}" in err and "fitting" in err
 
     bars.clear()
     run_invrender(config, progress=False)
-    assert len(bars) == 1 and capsys.readouterr().err == ""
+    assert len(bars) == 2 and capsys.readouterr().err == ""
 
 
 def _olat_selection(scene: Scene, rig, iterations: int, seed: int = 0):

@@ -160,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate = commands.add_parser("evaluate", help="reconstruct scenes under a pattern set and measure normal errors")
     evaluate.add_argument("--scenes", type=_path, nargs="+", default=(), help="scene files or folders (default: synthetic test split)")
     evaluate.add_argument("--patterns", type=_patterns_or_olat, required=True, help="pattern file, or 'olat' for the full OLAT stack")
-    evaluate.add_argument("--method", choices=("ps", "woodham"), default="ps")
+    evaluate.add_argument("--method", choices=("ps", "woodham"), default="ps", help="ps: analytic multiplexed photometric stereo (default); woodham: least squares per colour channel (OLAT or grey patterns)")
     evaluate.add_argument("--noise", choices=NOISE_CHOICES, default="default", help=NOISE_HELP)
     evaluate.add_argument("--exposure", default="rig", help=EXPOSURE_HELP)
     evaluate.add_argument("--rig", default=None, help=INPUT_RIG_HELP)
@@ -207,10 +207,10 @@ def build_parser() -> argparse.ArgumentParser:
     compare.set_defaults(handler=_compare, interrupted=RERUN_REUSES_RUNS)
 
     export = commands.add_parser("export", help="write display frames, manifest and contact sheet for the rig")
-    export.add_argument("--patterns", type=_path, required=True)
+    export.add_argument("--patterns", type=_path, required=True, help="pattern file .npz or .npy, values in [0, 1]")
     export.add_argument("--rig", default=None, help=INPUT_RIG_HELP)
     export.add_argument("--out", type=_path, required=True, help="output folder for the frames, manifest.json and contact sheet")
-    export.add_argument("--bit-depth", type=int, choices=(8, 16), default=8)
+    export.add_argument("--bit-depth", type=int, choices=(8, 16), default=8, help="bits per channel of the PNG frames (default: 8)")
     export.add_argument("--olat", action="store_true", help="also write the OLAT capture sequence (K frames, black, white)")
     export.set_defaults(handler=_export)
 
@@ -237,7 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
     invrender.set_defaults(handler=_invrender)
 
     demo = commands.add_parser("demo", help="the main job: scenes, learning, search, comparison, report and charts")
-    demo.add_argument("--out", type=_path, default=Path("runs/demo"))
+    demo.add_argument("--out", type=_path, default=Path("runs/demo"), help="output folder: scenes, report.md, results.json, charts, patterns (default: runs/demo)")
     demo.add_argument("--steps", type=int, default=None, help="learning steps of every learned pattern set (default: 150, and 100 at M = 10, as configs/compare/demo.toml sets them)")
     demo.set_defaults(handler=_demo, interrupted=RERUN_REUSES_RUNS)
 

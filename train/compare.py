@@ -79,14 +79,14 @@ def summarise(scene_metrics: list[dict], num_patterns: int, exposure_ms: float, 
 
     Returns:
         dict: every ``SUMMARY_METRICS`` entry averaged over scenes (``seconds`` renamed
-        ``compute_seconds``: simulation plus reconstruction wall time per scene;
+        ``simulate_reconstruct_seconds``: simulation plus reconstruction wall time per scene;
         ``reconstruct_seconds``: the reconstruction's alone, the compute time the report charts),
         ``capture_seconds`` (the scene mean of M x exposure_ms x e / e_white, in seconds),
         ``flagged`` (flag name -> the scene mean of the share of pixels carrying it), and the
         per-scene values under ``scenes``.
     """
     summary = {key: float(np.mean([metrics[key] for metrics in scene_metrics])) for key in SUMMARY_METRICS}
-    summary["compute_seconds"] = summary.pop("seconds")
+    summary["simulate_reconstruct_seconds"] = summary.pop("seconds")
     captures = [num_patterns * exposure_ms / 1000.0 * metrics["exposure"] / white for metrics, white in zip(scene_metrics, white_exposures, strict=True)]
     summary["capture_seconds"] = float(np.mean(captures))
     summary["flagged"] = {name: float(np.mean([metrics["flagged"][name] for metrics in scene_metrics])) for name in scene_metrics[0]["flagged"]}
@@ -403,6 +403,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
     resolved = compare_config_to_dict(config)
     test_raw = resolve_scenes(tuple(config.test_scenes), "test", rig, config.scene_size, config.scene_seed)
     test_scenes = [scene_pixels(scene, rig, require_normals=True) for scene in test_raw]
+    test_files = [scene.meta.get("file") for scene in test_raw]  # None for synthesised default scenes
     free_scenes, free_reason = specular_free_scenes(test_raw, rig) if config.specular_free_check else (None, None)
     del test_raw  # learning runs next: keep the prepared pixels only, not the full-frame stacks
     methods, skipped, timings = collect_methods(config, rig, pattern_dir, progress, logdir=out_dir / "tensorboard")
@@ -433,6 +434,7 @@ def run_compare(config: CompareConfig, out_dir: Path, progress: bool = True) -> 
         "noise_scales": [float(s) for s in config.noise_scales],
         "pattern_counts": list(config.pattern_counts),
         "test_scenes": [pixels.name for pixels in test_scenes],
+        "test_scene_files": test_files,  # in the order of test_scenes: two files may carry one scene name
         "test_pixels": sum(pixels.num_pixels for pixels in test_scenes),
         "test_files_also_trained": trained_test_files,  # test scene files that learning or searches also used
         "test_image_sizes": sorted({f"{pixels.transport.height} x {pixels.transport.width}" for pixels in test_scenes}),

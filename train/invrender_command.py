@@ -236,7 +236,7 @@ def run_invrender(config: InvRenderConfig, progress: bool = True) -> dict:
 
     Args:
         config: what to run.
-        progress: show a tqdm bar over the model-selection fits (``basis = 'auto'``).
+        progress: show tqdm bars over the model-selection fits (``basis = 'auto'``) and the final fit's steps.
 
     Returns:
         JSON-ready dict with ``mae`` (deg, None without ground-truth normals), ``psnr`` (dB),
@@ -331,7 +331,13 @@ def _fit_and_evaluate(config: InvRenderConfig, scene, pixels, split, data: _Data
     # ---- final fit on all fit captures
     tick = time.perf_counter()
     fit_config = dataclasses.replace(template, num_basis=num_basis, specular=specular, iterations=config.iterations)
-    result = problem.fit(fit_config, initial, log=lambda step, values: board.scalars("fit", step, values))
+    with tqdm(total=config.iterations, desc="fitting", unit="step", disable=not progress) as bar:
+
+        def log(step, values):  # called every 10 steps and at the last
+            board.scalars("fit", step, values)
+            bar.update(step + 1 - bar.n)
+
+        result = problem.fit(fit_config, initial, log=log)
     timings["fit"] = time.perf_counter() - tick
 
     # ---- evaluation: held-out relighting and normals

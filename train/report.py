@@ -8,6 +8,7 @@ charts as their mean over seeds; the seed spread has its own table.
 from __future__ import annotations
 
 import math
+import os
 from collections import defaultdict
 from pathlib import Path
 
@@ -101,21 +102,39 @@ def _reference_flags(results: dict) -> str:
     return f" (a poor fit on {100 * share:.3g}% of the pixels)" if share > 0 else ""
 
 
+def scene_labels(results: dict) -> list[str]:
+    """The test scenes' names, in ``results["test_scenes"]`` order, each name that several scenes
+    carry (scene sets of other seeds reuse the names) followed by its file: the file name, or the
+    whole path where the file names repeat too."""
+    names = results["test_scenes"]
+    files = results.get("test_scene_files") or [None] * len(names)
+    labels = []
+    for name, file in zip(names, files):
+        if names.count(name) == 1 or not file:
+            labels.append(name)
+            continue
+        short = Path(file).name
+        twins = [Path(other).name for other_name, other in zip(names, files) if other_name == name and other]
+        labels.append(f"{name} ({short if twins.count(short) == 1 else file})")
+    return labels
+
+
 def _held_out_text(results: dict) -> str:
     """'4 held-out test scenes', or '4 test scenes (2 of them also used for learning or searches,
     so not held out: a.npz, b.npz)' where the config listed test scene files among the training
     scenes."""
     count, shared = len(results["test_scenes"]), results.get("test_files_also_trained") or []
+    scenes = "scene" if count == 1 else "scenes"
     if not shared:
-        return f"{count} held-out test scenes"
-    return f"{count} test scenes ({len(shared)} of them also used for learning or searches, so not held out: {', '.join(shared)})"
+        return f"{count} held-out test {scenes}"
+    return f"{count} test {scenes} ({len(shared)} of them also used for learning or searches, so not held out: {', '.join(shared)})"
 
 
 def _measurement_caption(results: dict) -> str:
     reference = any(method["kind"] == "reference" for method in results["methods"])
     return (
         f"Measured on {_held_out_text(results)}{_sizes_text(results)} ({results['test_pixels']} masked pixels in all; "
-        f"{', '.join(results['test_scenes'])}), rig {results['rig']} ({results['grid'][0]} x {results['grid'][1]} superpixels). "
+        f"{', '.join(scene_labels(results))}), rig {results['rig']} ({results['grid'][0]} x {results['grid'][1]} superpixels). "
         "Captures are simulated from the OLAT stacks (display gamma and backlight, Poisson-Gaussian noise at the given scale "
         "times the rig's noise variances, clipping, quantisation) with auto exposure per scene, then reconstructed with the "
         f"analytic photometric stereo{_solver_text(results)}{' (the OLAT reference: Woodham least squares on all K images)' if reference else ''}. "
@@ -123,11 +142,19 @@ def _measurement_caption(results: dict) -> str:
         f"weighs the same). {_capture_text(results, reference)} Compute time = wall seconds per scene of the reconstruction "
         f"of {_pixels_short(results)} on this machine's CPU (the simulation of the captures, which the rig's camera replaces, "
         f"is left out){_timing_text(results)}, the median over the method's evaluations at every noise level; only "
-        "differences of 2x or more are beyond the noise of such timings. Exposure = mean auto-exposure gain. Cost = wall seconds of a "
-        f"learning run (its steps see the training scenes only; the time includes loading the held-out scenes and validating on them) "
-        f"or of a search.{_trained_noise_text(results)} {_learning_text(results)}"
+        f"differences of 2x or more are beyond the noise of such timings. Exposure = mean auto-exposure gain.{_cost_text(results)}"
+        f"{_trained_noise_text(results)} {_learning_text(results)}"
         f"{_preset_text(results)}"
     )
+
+
+def _cost_text(results: dict) -> str:
+    """What the cost column measures, for the kinds of run the comparison made (none: nothing)."""
+    kinds = {method["kind"] for method in results["methods"]}
+    kinds |= {"learned"} if "rerender" in kinds else set()  # re-rendering runs are learning runs too
+    runs = [text for kind, text in (("learned", "a learning run (its steps see the training scenes only; the time includes loading the "
+                                                 "held-out scenes and validating on them)"), ("search", "a search")) if kind in kinds]
+    return f" Cost = wall seconds of {' or of '.join(runs)}." if runs else ""
 
 
 def externals_section(results: dict) -> list[str]:
@@ -229,7 +256,7 @@ def _learning_text(results: dict) -> str:
     if not runs:
         return ""
     scenes = results["config"].get("train_scenes") or []
-    where = ", ".join(scenes) if scenes else "the default synthetic training split"
+    where = ", ".join(os.path.normpath(scene) for scene in scenes) if scenes else "the default synthetic training split"  # no "cfg/../sc"
     return f"Learning: {'; '.join(f'M = {count}: {steps} steps from {init}' for count, steps, init in runs)}; training scenes: {where}. "
 
 
@@ -481,10 +508,10 @@ def summary_section(results: dict, summary: dict) -> list[str]:
         else:
             per_m = ", ".join(f"{seeds[count]} learning seed{'s' if seeds[count] > 1 else ''} at M = {count}" for count in sorted(seeds))
         learning = f", learned patterns from {per_m}" + ("" if max(counts) > 1 else " (no seed spread measured)")
-    lines += ["", f"Evidence: {len(results['test_scenes'])} test scenes, one noise draw per scene and method (the same draws for "
+    lines += ["", f"Evidence: {len(results['test_scenes'])} test scene{'s' if len(results['test_scenes']) != 1 else ''}, one noise draw per scene and method (the same draws for "
               f"every method){learning}. A pixel the solver flags invalid (too dark, too few or too similar captures, a fit that "
               "faces away from the camera, or a point behind the camera or on a superpixel) counts in the MAE with the placeholder normal (0, 0, -1), facing the camera; the invalid "
-              "share is in the tables below. Ratios are learned / other MAE: below 1, learned is better.", ""]
+              "share is in the tables below." + (" Ratios are learned / other MAE: below 1, learned is better." if learned_rows else ""), ""]
     return lines
 
 
@@ -532,7 +559,7 @@ def scene_section(results: dict, summary: dict) -> list[str]:
     def cell(entry) -> str:
         return "-" if entry is None else _fmt(entry[0]) + invalid_note(entry[1])
 
-    body = [[scene] + [cell(maes[position]) for _, maes in columns] for position, scene in enumerate(results["test_scenes"])]
+    body = [[scene] + [cell(maes[position]) for _, maes in columns] for position, scene in enumerate(scene_labels(results))]
     return ["## Per test scene", "",
             f"MAE (deg) of each test scene at noise scale {default:g}: the learned patterns (mean over seeds) and the heuristic "
             "family with the lowest MAE over all scenes at that M. The scene names give the shape and the material: where "

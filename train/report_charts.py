@@ -253,12 +253,24 @@ def _leading_one_two_five(value: float, _position=None) -> str:
     return f"{value:g}" if f"{value:.0e}"[0] in "125" else ""
 
 
+MINOR_LABEL_DECADES = 2.5
+"""Widest span (decades) of a log axis whose minor ticks at 2 and 5 are labelled: on wider ones
+"500", "1000" and "2000" ran together."""
+
+
 def plain_log_ticks(axis) -> None:
     """Plain numbers (0.2, 0.5, 1, 2) on a log ``axis`` instead of powers of ten, the minor ticks
-    labelled at 1, 2 and 5 times a power of ten only: a range inside one decade has no major tick,
-    and labelling every minor tick makes the labels collide."""
+    labelled at 1, 2 and 5 times a power of ten only, and only on axes spanning at most
+    ``MINOR_LABEL_DECADES`` when drawn: a range inside one decade has no major tick, and labelling
+    every minor tick (or, on a wide axis, every 2 and 5) makes the labels collide."""
+
+    def minor(value, position=None):
+        low, high = sorted(abs(bound) for bound in axis.get_view_interval())
+        narrow = low > 0 and math.log10(high / low) <= MINOR_LABEL_DECADES
+        return _leading_one_two_five(value) if narrow else ""
+
     axis.set_major_formatter(matplotlib.ticker.FuncFormatter(_plain_tick))
-    axis.set_minor_formatter(matplotlib.ticker.FuncFormatter(_leading_one_two_five))
+    axis.set_minor_formatter(matplotlib.ticker.FuncFormatter(minor))
 
 
 HEURISTIC_MARKER_SIZES = (5.0, 7.5, 10.0, 12.5)
@@ -439,7 +451,9 @@ def write_charts(results: dict, summary: dict, pattern_sets: dict, into: Path, p
             (e.g. "at most 4000 pixels").
     """
     rows = summary["rows"]
-    short = f"{len(results['test_scenes'])} test scenes, noise scale {results['default_noise']:g}, analytic PS (OLAT: Woodham); MAE averaged over scenes."
+    solvers = "analytic PS (OLAT: Woodham)" if any(method["kind"] == "reference" for method in results["methods"]) else "analytic PS"
+    scenes = f"{len(results['test_scenes'])} test scene{'s' if len(results['test_scenes']) != 1 else ''}"
+    short = f"{scenes}, noise scale {results['default_noise']:g}, {solvers}; MAE averaged over scenes."
     learned_seeds = [row["seeds"] for row in rows if row["kind"] == "learned"]
     seeds_note = "" if not learned_seeds else " Learned: mean over seeds, bars = sample std over seeds." if max(learned_seeds) > 1 else " Learned: one seed."
     save_figure(chart_mae_vs_patterns(rows, short + seeds_note), into / CHARTS["mae_vs_M"])
@@ -447,7 +461,7 @@ def write_charts(results: dict, summary: dict, pattern_sets: dict, into: Path, p
                                   short), into / CHARTS["mae_vs_capture_time"])
     save_figure(chart_mae_vs_cost(rows, "reconstruct_seconds", f"compute time per scene (s): reconstruction of {pixels}, CPU",
                                   "Speed-accuracy: normal error against compute time", short), into / CHARTS["mae_vs_compute_time"])
-    save_figure(chart_mae_vs_noise(results, f"{len(results['test_scenes'])} test scenes; analytic PS (OLAT: Woodham); noise scale multiplies the rig's noise variances."),
+    save_figure(chart_mae_vs_noise(results, f"{scenes}; {solvers}; noise scale multiplies the rig's noise variances."),
                 into / CHARTS["mae_vs_noise"])
     written = {"mae_vs_M", "mae_vs_capture_time", "mae_vs_compute_time", "mae_vs_noise"}
     free_rows = (summary.get("specular_free") or {}).get("rows")

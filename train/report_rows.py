@@ -10,7 +10,7 @@ from collections import defaultdict
 
 import numpy as np
 
-_ROW_METRICS = ("mae", "median", "under_10", "invalid_fraction", "exposure", "capture_seconds", "compute_seconds")
+_ROW_METRICS = ("mae", "median", "under_10", "invalid_fraction", "exposure", "capture_seconds", "simulate_reconstruct_seconds")
 """Means over a row's seeds at one noise level (``reconstruct_seconds`` is a median: ``aggregate_rows``)."""
 KIND_ORDER = {"learned": 0, "rerender": 1, "search": 2, "external": 3, "heuristic": 4, "reference": 5}
 """Order of the kinds of method in tables, charts and legends."""
@@ -37,7 +37,7 @@ def aggregate_rows(results: dict, noise: float, specular_free: bool = False) -> 
 
     Returns:
         rows with series, label, kind, M, seeds (count), cost_seconds (mean), the means of mae,
-        median, under_10, invalid_fraction, exposure, capture_seconds, compute_seconds, the median
+        median, under_10, invalid_fraction, exposure, capture_seconds, simulate_reconstruct_seconds, the median
         reconstruct_seconds over the methods' evaluations at every noise level (with
         ``specular_free``: over their specular-free evaluations), plus mae_std, the sample
         standard deviation over seeds (0 for one seed); sorted by kind, then M, then MAE.
