@@ -879,6 +879,24 @@ def test_cost_chart_labels_its_axis_when_every_cost_is_below_a_second():
     assert ax.get_xlabel() == "compute (s); log scale"  # log axes say so
 
 
+def test_cost_chart_over_several_decades_labels_its_major_ticks_only():
+    """On an axis over more than MINOR_LABEL_DECADES the minor labels ran together ("500", "1000",
+    "2000" on the capture-time chart); the merged legend's long failure explanation comes last."""
+    from train.report_charts import FAILED_LABEL, _legend_entries, chart_mae_vs_cost
+
+    rows = aggregate_rows(fake_results(), 0.5)
+    for row, seconds in zip(rows, (1.2, 3.0, 50.0, 400.0, 2000.0)):
+        row["simulate_reconstruct_seconds"] = seconds
+    rows.append(dict(rows[0], series="dead", label="dead", kind="external", mae=60.0, invalid_fraction=1.0))
+    fig = chart_mae_vs_cost(rows, "simulate_reconstruct_seconds", "compute (s)", "speed", "caption")
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    assert [t.get_text() for t in ax.xaxis.get_minorticklabels() if t.get_text()] == []
+    low, high = ax.get_xlim()
+    assert {float(t.get_text()) for t in ax.xaxis.get_majorticklabels() if t.get_text() and low <= float(t.get_text()) <= high} == {1, 10, 100, 1000}
+    assert list(_legend_entries([ax]))[-1] == FAILED_LABEL
+
+
 def test_cost_chart_draws_failed_methods_in_a_band_and_merges_coincident_labels():
     """Methods with (nearly) every pixel invalid are drawn crossed out, with their own markers side
     by side, in a band above the data (not at the placeholder's MAE, where real results may sit);

@@ -102,11 +102,13 @@ FAILED_SPACING = 8.5
 
 def _legend_entries(axes) -> dict:
     """Label -> handle of every labelled artist of ``axes``, the first of each label kept (panels
-    of one figure draw the same methods)."""
+    of one figure draw the same methods), the failure band's explanation (``FAILED_LABEL``) last."""
     entries: dict = {}
     for ax in axes:
         for handle, label in zip(*ax.get_legend_handles_labels()):
             entries.setdefault(label, handle)
+    if FAILED_LABEL in entries:  # the long explanation last: in a middle column it widened the legend
+        entries[FAILED_LABEL] = entries.pop(FAILED_LABEL)
     return entries
 
 
