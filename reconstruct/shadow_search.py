@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
-from reconstruct.pixel_solve import CONDITION_CAP, Moments, albedo_step, normal_condition, relative_residual, residual, tangent_basis, unit
+from reconstruct.pixel_solve import CONDITION_CAP, Moments, albedo_step, length, normal_condition, relative_residual, residual, tangent_basis, unit
 
 
 @dataclass(eq=False)
@@ -121,7 +121,7 @@ def shadow_search(evaluator, fit, initial_albedo, initial_normal, config) -> Sha
             accepted.append(index)
             pending = pending[~better]
         stalled = moving[pending]
-        state.converged[stalled] = (target[:, pending] - start[:, pending]).norm(dim=0) <= kink_tolerance
+        state.converged[stalled] = length(target[:, pending] - start[:, pending]) <= kink_tolerance
         state.albedo[:, stalled] = albedo_step(start[:, pending], state.moments.subset(stalled), config.damping)
         active = torch.cat(accepted) if accepted else active[:0]
     return state
