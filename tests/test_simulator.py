@@ -408,5 +408,6 @@ def test_all_finite_finds_every_non_finite_value_whatever_the_dtype_and_layout()
                 with pytest.raises(InputError, match="patterns: contains NaN or infinite values"):
                     check_array("patterns", values)
     assert all_finite(torch.zeros(0)) and all_finite(torch.arange(4)) and all_finite(torch.ones(3, dtype=torch.bool))
+    assert all_finite(torch.tensor([1 + 2j])) and not all_finite(torch.tensor([complex("nan")])) and not all_finite(torch.tensor([complex(1, float("inf"))]))
     with pytest.raises(InputError, match=r"values must lie in \[0, 1\], found \[-0.5, 2.0\]"):
         check_array("patterns", torch.tensor([0.5, -0.5, 2.0]), value_range=(0.0, 1.0))
