@@ -160,11 +160,13 @@ def check_array(
         value = value.detach()
     if value.dtype in (torch.bool, np.bool_) or (value.numel() if is_tensor else value.size) == 0:
         return
-    if finite and not (all_finite(value) if is_tensor else bool(np.isfinite(value).all())):
+    # A tensor's minimum and maximum in one pass serve both checks (NaN and infinities reach them).
+    bounds = tuple(float(bound) for bound in torch.aminmax(value)) if is_tensor and (finite or value_range is not None) else None
+    if finite and not (all(map(math.isfinite, bounds)) if is_tensor else bool(np.isfinite(value).all())):
         raise InputError(f"{name}: contains NaN or infinite values")
     if value_range is not None:
         low, high = value_range
-        vmin, vmax = (float(bound) for bound in torch.aminmax(value)) if is_tensor else (float(value.min()), float(value.max()))
+        vmin, vmax = bounds if is_tensor else (float(value.min()), float(value.max()))
         if vmin < low or vmax > high:
             # repr: the shortest text that reads back as the same float, so a value a rounding step
             # outside a bound (float32 or float64) never prints as the bound itself.

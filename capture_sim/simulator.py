@@ -299,7 +299,7 @@ def sensor(
         return _sensor_in_blocks(signal, dtype, noise, levels, generator)
     signal = signal.to(dtype)
     if noise is not None:
-        signal = signal + _noise_std(signal, noise) * _standard_normal(signal.numel(), generator, dtype).view(signal.shape)
+        signal = _with_noise(signal, noise, generator)
     captured = _SaturatingClip.apply(signal, CLIP_SHARPNESS)
     if levels is not None:
         captured = _StraightThroughRound.apply(captured, levels)
@@ -312,10 +312,12 @@ capture (144 x 313 344 x 3 values) then needs its output and a few blocks, not s
 temporaries (+3 GB)."""
 
 
-def _noise_std(signal: torch.Tensor, noise: NoiseModel) -> torch.Tensor:
+def _with_noise(signal: torch.Tensor, noise: NoiseModel, generator: torch.Generator | None) -> torch.Tensor:
+    """signal + sqrt(a signal + sigma_read^2) z, z drawn for ``signal``'s values in order."""
     # The floor keeps the square root's gradient finite where the variance is zero (no read
     # noise at zero signal, or a noise model scaled to 0).
-    return torch.sqrt(noise.shot * signal.clamp_min(0.0) + noise.read_std**2 + torch.finfo(signal.dtype).tiny)
+    std = torch.sqrt(noise.shot * signal.clamp_min(0.0) + noise.read_std**2 + torch.finfo(signal.dtype).tiny)
+    return signal + std * _standard_normal(signal.numel(), generator, signal.dtype).view(signal.shape)
 
 
 def _standard_normal(count: int, generator: torch.Generator | None, dtype: torch.dtype) -> torch.Tensor:
@@ -349,7 +351,7 @@ def _sensor_in_blocks(signal, dtype, noise, levels, generator) -> torch.Tensor:
     for start, stop in _draw_blocks(rows.shape[0], rows[0].numel()):
         block = rows[start:stop].to(dtype, copy=True)
         if noise is not None:
-            block = block + _noise_std(block, noise) * _standard_normal(block.numel(), generator, dtype).view(block.shape)
+            block = _with_noise(block, noise, generator)
         block.clamp_(0.0, 1.0)
         if levels is not None:
             block = _rounded(block, levels)

@@ -31,7 +31,7 @@ import torch
 from tqdm import tqdm
 
 from capture_sim.atomic import atomic_path, check_folder_place, exclusive_output, refuse_folder_clashes, staged_files, write_json
-from capture_sim.errors import InputError, check_seed, one_line
+from capture_sim.errors import InputError, all_finite, check_seed, one_line
 from capture_sim.rig import DEFAULT_RIG, check_noise_scale, load_rig, rig_file, rig_source
 from capture_sim.scene import file_fingerprints, scene_paths
 from patterns.families import FAMILIES, get_family, make_patterns
@@ -420,12 +420,12 @@ def check_state_fits(state: dict, logits: torch.Tensor, checkpoint: Path) -> Non
     file; Adam's ``load_state_dict`` checks neither, and its first step would fail or write NaN)."""
 
     def fits(value) -> bool:
-        return isinstance(value, torch.Tensor) and value.shape == logits.shape and bool(torch.isfinite(value).all())
+        return isinstance(value, torch.Tensor) and value.shape == logits.shape and all_finite(value)
 
     def usable_moment(value) -> bool:  # Adam's per-parameter tensors, and its step count (a scalar)
         if not isinstance(value, torch.Tensor):
             return True
-        return fits(value) if value.dim() else bool(torch.isfinite(value).all())
+        return fits(value) if value.dim() else all_finite(value)
 
     if not fits(state["logits"]):
         raise InputError(f"checkpoint {checkpoint} is damaged: its patterns do not fit its config; {_AFRESH}")

@@ -18,7 +18,8 @@ from capture_sim.atomic import write_text
 from patterns.families import FAMILIES, PRESET_LEVELS
 from reconstruct.photometric_stereo import INVALIDATING_FLAGS
 from train.report_charts import CHARTS, write_charts
-from train.report_rows import KIND_ORDER, NEARLY_ALL_INVALID, aggregate_rows, all_invalid, evaluation_at, learned_rows_per_m, lowest_mae_per_m, summary_tables
+from train.report_rows import (KIND_ORDER, NEARLY_ALL_INVALID, aggregate_rows, all_invalid, evaluation_at, learned_rows_per_m, lowest_mae_per_m,
+                               summary_tables, test_scenes_text)
 
 
 def invalid_note(fraction: float) -> str:
@@ -123,11 +124,10 @@ def _held_out_text(results: dict) -> str:
     """'4 held-out test scenes', or '4 test scenes (2 of them also used for learning or searches,
     so not held out: a.npz, b.npz)' where the config listed test scene files among the training
     scenes."""
-    count, shared = len(results["test_scenes"]), results.get("test_files_also_trained") or []
-    scenes = "scene" if count == 1 else "scenes"
+    scenes, shared = test_scenes_text(results), results.get("test_files_also_trained") or []
     if not shared:
-        return f"{count} held-out test {scenes}"
-    return f"{count} test {scenes} ({len(shared)} of them also used for learning or searches, so not held out: {', '.join(shared)})"
+        return scenes.replace(" test ", " held-out test ", 1)
+    return f"{scenes} ({len(shared)} of them also used for learning or searches, so not held out: {', '.join(shared)})"
 
 
 def _measurement_caption(results: dict) -> str:
@@ -508,7 +508,7 @@ def summary_section(results: dict, summary: dict) -> list[str]:
         else:
             per_m = ", ".join(f"{seeds[count]} learning seed{'s' if seeds[count] > 1 else ''} at M = {count}" for count in sorted(seeds))
         learning = f", learned patterns from {per_m}" + ("" if max(counts) > 1 else " (no seed spread measured)")
-    lines += ["", f"Evidence: {len(results['test_scenes'])} test scene{'s' if len(results['test_scenes']) != 1 else ''}, one noise draw per scene and method (the same draws for "
+    lines += ["", f"Evidence: {test_scenes_text(results)}, one noise draw per scene and method (the same draws for "
               f"every method){learning}. A pixel the solver flags invalid (too dark, too few or too similar captures, a fit that "
               "faces away from the camera, or a point behind the camera or on a superpixel) counts in the MAE with the placeholder normal (0, 0, -1), facing the camera; the invalid "
               "share is in the tables below." + (" Ratios are learned / other MAE: below 1, learned is better." if learned_rows else ""), ""]

@@ -13,7 +13,7 @@ import numpy as np
 
 from patterns.families import FAMILIES
 from train.figures import plt, save_figure
-from train.report_rows import KIND_ORDER, NEARLY_ALL_INVALID, aggregate_rows, placeholder_error
+from train.report_rows import KIND_ORDER, NEARLY_ALL_INVALID, aggregate_rows, placeholder_error, test_scenes_text
 
 
 CHARTS = {
@@ -454,7 +454,7 @@ def write_charts(results: dict, summary: dict, pattern_sets: dict, into: Path, p
     """
     rows = summary["rows"]
     solvers = "analytic PS (OLAT: Woodham)" if any(method["kind"] == "reference" for method in results["methods"]) else "analytic PS"
-    scenes = f"{len(results['test_scenes'])} test scene{'s' if len(results['test_scenes']) != 1 else ''}"
+    scenes = test_scenes_text(results)
     short = f"{scenes}, noise scale {results['default_noise']:g}, {solvers}; MAE averaged over scenes."
     learned_seeds = [row["seeds"] for row in rows if row["kind"] == "learned"]
     seeds_note = "" if not learned_seeds else " Learned: mean over seeds, bars = sample std over seeds." if max(learned_seeds) > 1 else " Learned: one seed."

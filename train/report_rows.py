@@ -16,6 +16,12 @@ KIND_ORDER = {"learned": 0, "rerender": 1, "search": 2, "external": 3, "heuristi
 """Order of the kinds of method in tables, charts and legends."""
 
 
+def test_scenes_text(results: dict) -> str:
+    """'4 test scenes' ('1 test scene') for the scenes of ``results``."""
+    count = len(results["test_scenes"])
+    return f"{count} test scene{'' if count == 1 else 's'}"
+
+
 def seed_std(values) -> float:
     """Sample standard deviation (n - 1 in the denominator) of a few seeds' values; 0 for one."""
     return float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
