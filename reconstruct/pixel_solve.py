@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
+from capture_sim.errors import InputError
 from reconstruct.lighting import lighting_moments
 
 CONDITION_CAP = 1e12
@@ -42,6 +43,8 @@ def length(vectors: torch.Tensor, dim: int = 0) -> torch.Tensor:
 
     Three products and a square root: torch's norm over a leading axis of size 3 took ~90x as
     long ((3, 313 344): 46 ms against 0.5 ms; (4, 3, 3, 8192) over axis 2: 15 ms against 0.2 ms)."""
+    if vectors.dim() == 0 or vectors.shape[dim] != 3:
+        raise InputError(f"length: axis {dim} of a {tuple(vectors.shape)} tensor does not hold 3-vectors")
     x, y, z = vectors.unbind(dim)
     return torch.sqrt(x * x + y * y + z * z)
 

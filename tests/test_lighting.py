@@ -164,3 +164,5 @@ def test_length_is_the_euclidean_norm_along_any_axis_of_size_3():
                 torch.testing.assert_close(length(vectors, dim=dim), vectors.norm(dim=dim))
         assert length(vectors, dim=2).dtype == dtype
     assert float(length(torch.zeros(3, 1))[0]) == 0.0
+    with pytest.raises(InputError, match=r"axis 0 of a \(4, 5\) tensor does not hold 3-vectors"):
+        length(torch.zeros(4, 5))
