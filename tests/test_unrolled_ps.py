@@ -62,13 +62,74 @@ def test_alternation_backward_matches_autograd():
             new_normal, albedo = alternate(*inputs[:1], None, *inputs[1:], 1e-6, 2)
         else:
             tiny = 1e-12 * moments.abs().amax() + torch.finfo(torch.float64).tiny ** 0.5
-            new_normal, albedo, _ = _step(*inputs, 1e-6, tiny)
-            new_normal, albedo, _ = _step(new_normal, *inputs[1:], 1e-6, tiny)
+            new_normal, albedo = _step(*inputs, 1e-6, tiny)
+            new_normal, albedo = _step(new_normal, *inputs[1:], 1e-6, tiny)
         ((new_normal * weights[0]).sum() + (albedo * weights[1]).sum()).backward()
         grads.append([value.grad for value in inputs])
     assert all(torch.isfinite(grad).all() for grad in grads[0])
     for hand, auto in zip(*grads):
         torch.testing.assert_close(hand, auto, rtol=1e-9, atol=1e-12)
+
+
+def _reference_alternations(normal, moments, rhs, steps, damping=1e-6):
+    tiny = 1e-12 * moments.abs().amax() + torch.finfo(moments.dtype).tiny ** 0.5
+    for _ in range(steps):
+        normal, albedo = _step(normal, moments, rhs, damping, tiny)
+    return normal, albedo
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_alternation_matches_the_torch_reference(dtype):
+    # Clamped albedo channels and a dark pixel among random pixels; moments given as a
+    # non-contiguous view (the kernels take contiguous copies).
+    normal, moments, rhs = (value.to(dtype) for value in _alternation_inputs(count=300, seed=5))
+    moments = moments.permute(2, 0, 1).contiguous().permute(1, 2, 0)
+    assert not moments.is_contiguous()
+    with torch.no_grad():
+        compiled = alternate(normal, None, moments, rhs, 1e-6, 3)
+    for value, expected in zip(compiled, _reference_alternations(normal, moments, rhs, 3)):
+        assert value.dtype == dtype and value.is_contiguous()
+        torch.testing.assert_close(value, expected)
+    # Pixels are independent: the thread count changes nothing.
+    previous = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        with torch.no_grad():
+            single = alternate(normal, None, moments, rhs, 1e-6, 3)
+    finally:
+        torch.set_num_threads(previous)
+    assert all(torch.equal(one, many) for one, many in zip(single, compiled))
+
+
+def _alternate_in_child(connection):
+    torch.set_num_threads(1)  # as compare's workers: a forked child must not enter torch's OpenMP pool
+    normal, moments, rhs = _alternation_inputs(count=300, seed=5)
+    with torch.no_grad():
+        connection.send([value.numpy() for value in alternate(normal, None, moments, rhs, 1e-6, 2)])
+    connection.close()
+
+
+def test_compiled_alternation_runs_in_a_forked_process():
+    # compare forks its evaluation workers; GNU OpenMP aborts a forked child of a process that ran
+    # parallel kernels, so forked processes take the serial kernels.
+    import multiprocessing
+
+    normal, moments, rhs = _alternation_inputs(count=300, seed=5)
+    with torch.no_grad():
+        parent = alternate(normal, None, moments, rhs, 1e-6, 2)
+    context = multiprocessing.get_context("fork")
+    receiver, sender = context.Pipe(duplex=False)
+    child = context.Process(target=_alternate_in_child, args=(sender,), daemon=True)
+    child.start()
+    sender.close()
+    try:
+        assert receiver.poll(120), "the forked process gave no result"
+        values = receiver.recv()
+        child.join(30)
+        assert child.exitcode == 0
+    finally:
+        child.kill()
+    assert all(np.array_equal(value, expected.numpy()) for value, expected in zip(values, parent))
 
 
 def test_alternation_backward_drops_the_terms_of_masked_pixels():
