@@ -101,6 +101,17 @@ def test_compiled_alternation_matches_the_torch_reference(dtype):
     assert all(torch.equal(one, many) for one, many in zip(single, compiled))
 
 
+def test_compiled_alternation_refuses_other_channel_counts():
+    # The kernels read three channel rows without bounds checks: two would read past the array.
+    from reconstruct.alternation_kernels import alternation_backward, alternation_forward
+
+    normal, moments, rhs = _alternation_inputs(count=20, seed=5)
+    with pytest.raises(ValueError, match="3 colour channels"):
+        alternation_forward(normal, moments[:2], rhs[:2], 1e-6, 1e-20)
+    with pytest.raises(ValueError, match="3 colour channels"):
+        alternation_backward(normal, moments, rhs[:2], 1e-6, 1e-20, normal, None)
+
+
 def _alternate_in_child(connection):
     torch.set_num_threads(1)  # as compare's workers: a forked child must not enter torch's OpenMP pool
     normal, moments, rhs = _alternation_inputs(count=300, seed=5)
