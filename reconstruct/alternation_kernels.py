@@ -14,15 +14,21 @@ Arrays are numpy views of contiguous CPU tensors, pixels on the last axis:
     albedo (C, N); C = 3 colour channels.
 Scalars are passed in the arrays' dtype, so that float32 arithmetic stays float32 (a Python float
 literal would be float64 in numba and change the rounding). Pixels are independent, so the result
-does not depend on the thread count. Division follows IEEE (``error_model="numpy"``: no per-division
-zero test, which kept the pixel loop scalar), and the per-channel loops have a constant length, so
-the pixel loops run in SIMD lanes (8 float32 pixels at a time with AVX2): one alternation at 10^5
-pixels took 5.5 ms and its backward 13 ms before, 0.6-0.9 and 5 ms after (float32, 2 threads). Compiled code is cached on disk (``cache=True``: a few
-seconds on first use, per dtype).
+does not depend on the thread count.
+
+Speed: the parallel kernels' pixel loops run in SIMD lanes (8 float32 pixels at a time with AVX2). That takes
+per-channel loops of constant length (``CHANNELS``), IEEE division (``error_model="numpy"``;
+Python's model tests every divisor for zero in order to raise), and few stores per loop (hence the
+backward's second kernel). At 10^5 pixels, float32, 2 threads, one alternation took 5.5 ms and its
+backward 13 ms with a scalar loop; 0.6-0.9 ms and 3-4.5 ms vectorised (an AMD EPYC with AVX2).
+Compiled code is cached on disk (``cache=True``: a few seconds on first use, per dtype).
 
 Threads: numba's OpenMP layer shares the CPU with torch's. A process forked after the kernels ran
 in parallel may not start OpenMP threads again (GNU OpenMP aborts it: compare's evaluation
-workers are forked), so forked processes run the serial versions.
+workers are forked), so forked processes run the serial versions. Those stay scalar (~7x slower:
+numba tells the compiler that arrays do not overlap only in its parallel loops) and are compiled
+in each process that uses them (not cached); so are all kernels where no cache folder is
+writable (``NUMBA_CACHE_DIR`` names one).
 """
 from __future__ import annotations
 
@@ -36,8 +42,7 @@ from numba import njit, prange
 
 CHANNELS = 3
 """Colour channels C. A constant, so that the compiler unrolls the per-channel loops: the pixel
-loop is then the innermost one and runs in SIMD lanes (4-6x faster than with a loop over C
-inside it)."""
+loop is then the innermost one and can run in SIMD lanes."""
 
 
 @njit(inline="always", error_model="numpy")
@@ -65,7 +70,7 @@ def _forward_pixel(normal, moments, rhs, n, damping, tiny, floor, one, three):
     s00 = s11 = s22 = s01 = s02 = s12 = v0 = v1 = v2 = zero
     for c in range(CHANNELS):
         b00, b11, b22, b01, b02, b12, r0, r1, r2, _, _, _, _, ratio = _channel(moments, rhs, c, n, n0, n1, n2, tiny)
-        a = ratio if ratio > zero else zero  # a_c = max(n . r_c / (n^T B_c n + tiny), 0)
+        a = zero if ratio < zero else ratio  # a_c = max(n . r_c / (n^T B_c n + tiny), 0); NaN stays NaN, as in torch
         # S = sum_c a_c^2 B_c, v = sum_c a_c r_c.
         square = a * a
         s00 += square * b00
@@ -113,7 +118,7 @@ def _forward(normal, moments, rhs, damping, tiny, floor, one, three, new_normal,
         zero = floor - floor
         for c in range(CHANNELS):  # the forward pixel's terms again: the compiler shares them
             ratio = _channel(moments, rhs, c, n, n0, n1, n2, tiny)[13]
-            albedo[c, n] = ratio if ratio > zero else zero
+            albedo[c, n] = zero if ratio < zero else ratio
 
 
 def _backward(normal, moments, rhs, damping, damping_third, tiny, floor, one, three, grad_new_normal, grad_albedo,
@@ -155,7 +160,7 @@ def _backward(normal, moments, rhs, damping, damping_third, tiny, floor, one, th
         p0 = p1 = p2 = q0 = q1 = q2 = zero
         for c in range(CHANNELS):
             b00, b11, b22, b01, b02, b12, r0, r1, r2, bn0, bn1, bn2, denominator, ratio = _channel(moments, rhs, c, n, n0, n1, n2, tiny)
-            a = ratio if ratio > zero else zero
+            a = zero if ratio < zero else ratio
             # S = sum_c a_c^2 B_c and v = sum_c a_c r_c; a = max(p / (q + tiny), 0), p = n . r_c, q = n^T B_c n.
             total = ((a + a) * (b00 * t0 + b11 * t1 + b22 * t2 + b01 * gxy + b02 * gxz + b12 * gyz)
                      + (r0 * w0 + r1 * w1 + r2 * w2) + grad_albedo[c, n])
@@ -199,10 +204,20 @@ def _moment_gradients(normal, terms, grad_moments):
             grad_moments[c, 5, n] = square * gyz + quadratic * o5
 
 
+def _compile(function, parallel: bool):
+    options = dict(parallel=parallel, error_model="numpy")
+    if parallel:  # only the parallel kernels are cached: numba's cache tells kernels apart by function, not options
+        try:
+            return njit(cache=True, **options)(function)
+        except RuntimeError:  # no writable cache folder (beside the source or the user's): compile in each process
+            pass
+    return njit(**options)(function)
+
+
 _KERNELS = {
-    # Only the parallel ones are cached: numba's cache tells kernels apart by function, not options.
-    (name, parallel): njit(parallel=parallel, cache=parallel, error_model="numpy")(function)
-    for name, function in (("forward", _forward), ("backward", _backward), ("moment_gradients", _moment_gradients)) for parallel in (True, False)
+    (name, parallel): _compile(function, parallel)
+    for name, function in (("forward", _forward), ("backward", _backward), ("moment_gradients", _moment_gradients))
+    for parallel in (True, False)
 }
 """Compiled on first call: parallel, and serial for forked processes (module docstring)."""
 _FORKED = False
@@ -229,10 +244,20 @@ def _array(value: torch.Tensor) -> np.ndarray:
     return value.detach().contiguous().numpy()
 
 
-def _check_channels(moments: torch.Tensor, rhs_moments: torch.Tensor) -> None:
-    # The kernels read CHANNELS rows unchecked (no bounds checks in compiled code).
-    if moments.shape[0] != CHANNELS or rhs_moments.shape[0] != CHANNELS:
-        raise ValueError(f"alternation kernels need {CHANNELS} colour channels, got moments {tuple(moments.shape)} and rhs {tuple(rhs_moments.shape)}")
+def _check_inputs(normal: torch.Tensor, moments: torch.Tensor, rhs_moments: torch.Tensor, *grads) -> None:
+    """Shapes and dtypes the kernels rely on: compiled code has no bounds checks, so a short axis
+    would read or write past an array."""
+    count = normal.shape[-1] if normal.dim() == 2 else -1
+    expected = [(normal, (3, count)), (moments, (CHANNELS, 6, count)), (rhs_moments, (CHANNELS, 3, count))]
+    expected += [(grad, (3 if index == 0 else CHANNELS, count)) for index, grad in enumerate(grads) if grad is not None]
+    for value, shape in expected:
+        if tuple(value.shape) != shape or value.dtype != normal.dtype:
+            raise ValueError(
+                f"alternation kernels need normal (3, N), moments ({CHANNELS}, 6, N), rhs ({CHANNELS}, 3, N) and gradients "
+                f"(3, N) / ({CHANNELS}, N) of one dtype; got {tuple(value.shape)} {value.dtype} where {shape} {normal.dtype} was due"
+            )
+    if normal.dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"alternation kernels run in float32 or float64, got {normal.dtype}")
 
 
 def _scalars(dtype: torch.dtype, damping: float, tiny: float):
@@ -244,7 +269,7 @@ def _scalars(dtype: torch.dtype, damping: float, tiny: float):
 def alternation_forward(normal: torch.Tensor, moments: torch.Tensor, rhs_moments: torch.Tensor, damping: float, tiny: float):
     """One alternation without gradient: (new normal (3, N), albedo (C, N)), inputs' dtype
     (float32 or float64). Same values as ``unrolled_alternation._step``."""
-    _check_channels(moments, rhs_moments)
+    _check_inputs(normal, moments, rhs_moments)
     damping_, tiny_, floor, one, three, _ = _scalars(normal.dtype, damping, tiny)
     new_normal, albedo = torch.empty_like(normal, memory_format=torch.contiguous_format), normal.new_empty((moments.shape[0], normal.shape[1]))
     _kernel("forward")(_array(normal), _array(moments), _array(rhs_moments), damping_, tiny_, floor, one, three, new_normal.numpy(), albedo.numpy())
@@ -254,7 +279,7 @@ def alternation_forward(normal: torch.Tensor, moments: torch.Tensor, rhs_moments
 def alternation_backward(normal, moments, rhs_moments, damping: float, tiny: float, grad_new_normal, grad_albedo):
     """Gradients (normal (3, N), moments (C, 6, N), rhs_moments (C, 3, N)) of one alternation
     given those of its outputs (``grad_albedo`` None for none)."""
-    _check_channels(moments, rhs_moments)
+    _check_inputs(normal, moments, rhs_moments, grad_new_normal, grad_albedo)
     damping_, tiny_, floor, one, three, damping_third = _scalars(normal.dtype, damping, tiny)
     count = normal.shape[1]
     if grad_albedo is None:

@@ -80,6 +80,9 @@ class _Alternation(torch.autograd.Function):
     def backward(ctx, grad_normal, grad_albedo):
         from reconstruct.alternation_kernels import alternation_backward
 
+        if torch.is_grad_enabled():  # create_graph=True: the kernels' gradients would be silent constants
+            raise RuntimeError("the unrolled alternation has no second derivative (its backward is a compiled kernel): do not use create_graph=True")
+
         normal, moments, rhs_moments = ctx.saved_tensors
         if grad_normal is None:
             grad_normal = torch.zeros_like(normal)

@@ -101,15 +101,73 @@ def test_compiled_alternation_matches_the_torch_reference(dtype):
     assert all(torch.equal(one, many) for one, many in zip(single, compiled))
 
 
-def test_compiled_alternation_refuses_other_channel_counts():
-    # The kernels read three channel rows without bounds checks: two would read past the array.
+def test_compiled_alternation_refuses_shapes_it_would_read_past():
+    # Compiled code has no bounds checks: a short axis would read or write out of bounds.
     from reconstruct.alternation_kernels import alternation_backward, alternation_forward
 
     normal, moments, rhs = _alternation_inputs(count=20, seed=5)
-    with pytest.raises(ValueError, match="3 colour channels"):
-        alternation_forward(normal, moments[:2], rhs[:2], 1e-6, 1e-20)
-    with pytest.raises(ValueError, match="3 colour channels"):
-        alternation_backward(normal, moments, rhs[:2], 1e-6, 1e-20, normal, None)
+    for bad in ((normal[:2], moments, rhs), (normal, moments[:2], rhs), (normal, moments[:, :5], rhs),
+                (normal, moments[..., :10], rhs), (normal, moments, rhs[:, :2]), (normal, moments.float(), rhs)):
+        with pytest.raises(ValueError, match="alternation kernels need"):
+            alternation_forward(*bad, 1e-6, 1e-20)
+    with pytest.raises(ValueError, match="alternation kernels need"):
+        alternation_backward(normal, moments, rhs, 1e-6, 1e-20, normal[:, :10], None)
+    with pytest.raises(ValueError, match="alternation kernels need"):
+        alternation_backward(normal, moments, rhs, 1e-6, 1e-20, normal, rhs[:, 0, :10])
+    with pytest.raises(ValueError, match="float32 or float64"):
+        alternation_forward(normal.half(), moments.half(), rhs.half(), 1e-6, 1e-20)
+
+
+def test_compiled_alternation_keeps_nan_and_signed_zero_as_the_reference():
+    # The albedo's clamp is torch's clamp_min: NaN stays NaN (a bad input is not hidden as a dark
+    # pixel) and a ratio of -0.0 stays -0.0.
+    normal, moments, rhs = _alternation_inputs(count=20, seed=5)
+    moments, rhs = moments.clone(), rhs.clone()
+    moments[0, 1, 4] = float("nan")
+    rhs[:, :, 7] = 0.0
+    normal[:, 7] = -normal[:, 7].abs() - 0.1  # n . r_c = -0.0 for every channel
+    from reconstruct.alternation_kernels import alternation_forward
+
+    compiled = alternation_forward(normal, moments, rhs, 1e-6, 1e-20)
+    expected = _step(normal, moments, rhs, 1e-6, 1e-20)
+    assert torch.isnan(compiled[1][0, 4]) and torch.isnan(expected[1][0, 4])
+    assert torch.isfinite(compiled[1][1:, 4]).all()  # the other channels of that pixel are solved
+    assert torch.equal(torch.signbit(compiled[1][:, 7]), torch.signbit(expected[1][:, 7]))
+    assert bool(torch.signbit(compiled[1][:, 7]).all())
+
+
+def test_alternation_refuses_double_backward():
+    normal, moments, rhs = _alternation_inputs(count=10, seed=5)
+    moments.requires_grad_()
+    new_normal, _ = alternate(normal, None, moments, rhs, 1e-6, 1)
+    # Without the refusal the gradient would silently come back as a constant.
+    with pytest.raises(RuntimeError, match="no second derivative"):
+        torch.autograd.grad(new_normal.sum(), moments, create_graph=True)
+
+
+def test_kernels_compile_without_a_writable_cache_folder(monkeypatch):
+    # numba raises on cache=True when neither the source's folder nor the user's cache is
+    # writable; the module must still load (and compile in each process).
+    import importlib.util
+
+    import numba
+
+    import reconstruct.alternation_kernels as kernels
+
+    real = numba.njit
+
+    def njit_without_cache(*args, **options):
+        if options.get("cache"):
+            raise RuntimeError("cannot cache function: no locator available")
+        return real(*args, **options)
+
+    monkeypatch.setattr(numba, "njit", njit_without_cache)
+    spec = importlib.util.spec_from_file_location("kernels_without_cache", kernels.__file__)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    normal, moments, rhs = _alternation_inputs(count=9, seed=5)
+    assert all(torch.equal(one, other) for one, other in
+               zip(module.alternation_forward(normal, moments, rhs, 1e-6, 1e-20), kernels.alternation_forward(normal, moments, rhs, 1e-6, 1e-20)))
 
 
 def _alternate_in_child(connection):
