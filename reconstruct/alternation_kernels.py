@@ -7,7 +7,7 @@ alternation took ~4 ms and its written-out backward ~9 ms, a sixth of a training
 pixel's algebra runs in registers, in one pass over the moments: the forward is the same sequence
 of float operations as the reference (equal values in float32 and float64; no fast-math, so no
 contraction into fused multiply-adds), and the backward recomputes the forward's intermediates per
-pixel instead of storing a dozen (.., N) tensors.
+pixel instead of keeping a dozen (.., N) tensors from the forward pass.
 
 Arrays are numpy views of contiguous CPU tensors, pixels on the last axis:
     normal (3, N), moments (C, 6, N) (unique entries in ``SYMMETRIC_PAIRS`` order), rhs (C, 3, N),
@@ -16,7 +16,8 @@ Scalars are passed in the arrays' dtype, so that float32 arithmetic stays float3
 literal would be float64 in numba and change the rounding). Pixels are independent, so the result
 does not depend on the thread count.
 
-Speed: the parallel kernels' pixel loops run in SIMD lanes (8 float32 pixels at a time with AVX2). That takes
+Speed: the forward's and the backward's per-pixel loops run in SIMD lanes (8 float32 pixels at a
+time with AVX2; ``_moment_gradients`` stays scalar, ~1.3 ms of memory traffic). That takes
 per-channel loops of constant length (``CHANNELS``), IEEE division (``error_model="numpy"``;
 Python's model tests every divisor for zero in order to raise), and few stores per loop (hence the
 backward's second kernel). At 10^5 pixels, float32, 2 threads, one alternation took 5.5 ms and its
@@ -25,7 +26,7 @@ Compiled code is cached on disk (``cache=True``: a few seconds on first use, per
 
 Threads: numba's OpenMP layer shares the CPU with torch's. A process forked after the kernels ran
 in parallel may not start OpenMP threads again (GNU OpenMP aborts it: compare's evaluation
-workers are forked), so forked processes run the serial versions. Those stay scalar (~7x slower:
+workers are forked), so forked processes run the serial versions. Those stay scalar (2-6x slower:
 numba tells the compiler that arrays do not overlap only in its parallel loops) and are compiled
 in each process that uses them (not cached); so are all kernels where no cache folder is
 writable (``NUMBA_CACHE_DIR`` names one).
@@ -188,7 +189,7 @@ def _moment_gradients(normal, terms, grad_moments):
     """dL/dB_c (C, 6, N) from the backward's per-pixel ``terms`` (12, N): a_c^2 (rows 0-2), the
     coefficient of d(n^T B_c n)/dB_c (rows 3-5) and dL/dS (rows 6-11). A kernel of its own: with
     these 18 stores in the backward's loop the compiler's dependence analysis gave up on SIMD
-    there (13 ms instead of 5 at 10^5 pixels)."""
+    there (13 ms instead of 3-4.5 for the whole backward at 10^5 pixels, float32)."""
     for n in prange(normal.shape[1]):
         n0, n1, n2 = normal[0, n], normal[1, n], normal[2, n]
         o0, o1, o2 = n0 * n0, n1 * n1, n2 * n2  # d(n^T B n)/dB
@@ -247,14 +248,14 @@ def _array(value: torch.Tensor) -> np.ndarray:
 def _check_inputs(normal: torch.Tensor, moments: torch.Tensor, rhs_moments: torch.Tensor, *grads) -> None:
     """Shapes and dtypes the kernels rely on: compiled code has no bounds checks, so a short axis
     would read or write past an array."""
-    count = normal.shape[-1] if normal.dim() == 2 else -1
-    expected = [(normal, (3, count)), (moments, (CHANNELS, 6, count)), (rhs_moments, (CHANNELS, 3, count))]
-    expected += [(grad, (3 if index == 0 else CHANNELS, count)) for index, grad in enumerate(grads) if grad is not None]
-    for value, shape in expected:
+    count = normal.shape[-1] if normal.dim() == 2 else "N"
+    expected = [("normal", normal, (3, count)), ("moments", moments, (CHANNELS, 6, count)), ("rhs", rhs_moments, (CHANNELS, 3, count))]
+    expected += [(name, grad, (rows, count)) for name, grad, rows in zip(("grad_new_normal", "grad_albedo"), grads, (3, CHANNELS)) if grad is not None]
+    for name, value, shape in expected:
         if tuple(value.shape) != shape or value.dtype != normal.dtype:
             raise ValueError(
                 f"alternation kernels need normal (3, N), moments ({CHANNELS}, 6, N), rhs ({CHANNELS}, 3, N) and gradients "
-                f"(3, N) / ({CHANNELS}, N) of one dtype; got {tuple(value.shape)} {value.dtype} where {shape} {normal.dtype} was due"
+                f"(3, N) / ({CHANNELS}, N) of one dtype: {name} is {tuple(value.shape)} {value.dtype}, not ({', '.join(map(str, shape))}) {normal.dtype}"
             )
     if normal.dtype not in (torch.float32, torch.float64):
         raise ValueError(f"alternation kernels run in float32 or float64, got {normal.dtype}")
@@ -286,7 +287,8 @@ def alternation_backward(normal, moments, rhs_moments, damping: float, tiny: flo
         grad_albedo = normal.new_zeros((moments.shape[0], count))
     grad_normal, terms = normal.new_empty((3, count)), normal.new_empty((12, count))
     grad_moments, grad_rhs = normal.new_empty(moments.shape), normal.new_empty(rhs_moments.shape)
-    _kernel("backward")(_array(normal), _array(moments), _array(rhs_moments), damping_, damping_third, tiny_, floor, one, three,
+    normal_ = _array(normal)
+    _kernel("backward")(normal_, _array(moments), _array(rhs_moments), damping_, damping_third, tiny_, floor, one, three,
               _array(grad_new_normal), _array(grad_albedo), grad_normal.numpy(), terms.numpy(), grad_rhs.numpy())
-    _kernel("moment_gradients")(_array(normal), terms.numpy(), grad_moments.numpy())
+    _kernel("moment_gradients")(normal_, terms.numpy(), grad_moments.numpy())
     return grad_normal, grad_moments, grad_rhs
