@@ -117,7 +117,9 @@ def _forward(normal, moments, rhs, damping, tiny, floor, one, three, new_normal,
         new_normal[0, n], new_normal[1, n], new_normal[2, n] = terms[0], terms[1], terms[2]
         n0, n1, n2 = normal[0, n], normal[1, n], normal[2, n]
         zero = floor - floor
-        for c in range(CHANNELS):  # the forward pixel's terms again: the compiler shares them
+        # The channel terms again, written out: the parallel kernel's compiler shares them with the
+        # forward pixel's (its IR has the 8 divisions of one pass); the serial kernel computes them twice.
+        for c in range(CHANNELS):
             ratio = _channel(moments, rhs, c, n, n0, n1, n2, tiny)[13]
             albedo[c, n] = zero if ratio < zero else ratio
 
@@ -210,8 +212,9 @@ def _compile(function, parallel: bool):
     if parallel:  # only the parallel kernels are cached: numba's cache tells kernels apart by function, not options
         try:
             return njit(cache=True, **options)(function)
-        except RuntimeError:  # no writable cache folder (beside the source or the user's): compile in each process
-            pass
+        except RuntimeError as error:  # no writable cache folder (beside the source or the user's): compile in each process
+            if "cannot cache" not in str(error):
+                raise
     return njit(**options)(function)
 
 
