@@ -24,21 +24,18 @@ backward's second kernel). At 10^5 pixels, float32, 2 threads, one alternation t
 backward 13 ms with a scalar loop; 0.6-0.9 ms and 3-4.5 ms vectorised (an AMD EPYC with AVX2).
 Compiled code is cached on disk (``cache=True``: a few seconds on first use, per dtype).
 
-Threads: numba's OpenMP layer shares the CPU with torch's. A process forked after the kernels ran
-in parallel may not start OpenMP threads again (GNU OpenMP aborts it: compare's evaluation
-workers are forked), so forked processes run the serial versions. Those stay scalar (2-6x slower:
-numba tells the compiler that arrays do not overlap only in its parallel loops) and are compiled
-in each process that uses them (not cached); so are all kernels where no cache folder is
-writable (``NUMBA_CACHE_DIR`` names one).
+Threads and caching (``reconstruct.compiled``): forked processes run the serial versions. Those
+stay scalar (2-6x slower: numba tells the compiler that arrays do not overlap only in its parallel
+loops) and are compiled in each process that uses them (not cached); so are all kernels where no
+cache folder is writable (``NUMBA_CACHE_DIR`` names one).
 """
 from __future__ import annotations
 
-import os
-
-import numba
 import numpy as np
 import torch
 from numba import njit, prange
+
+from reconstruct.compiled import compile_kernel, forked, match_torch_threads
 
 
 CHANNELS = 3
@@ -207,39 +204,19 @@ def _moment_gradients(normal, terms, grad_moments):
             grad_moments[c, 5, n] = square * gyz + quadratic * o5
 
 
-def _compile(function, parallel: bool):
-    options = dict(parallel=parallel, error_model="numpy")
-    if parallel:  # only the parallel kernels are cached: numba's cache tells kernels apart by function, not options
-        try:
-            return njit(cache=True, **options)(function)
-        except RuntimeError as error:  # no writable cache folder (beside the source or the user's): compile in each process
-            if "cannot cache" not in str(error):
-                raise
-    return njit(**options)(function)
-
-
 _KERNELS = {
-    (name, parallel): _compile(function, parallel)
+    (name, parallel): compile_kernel(function, parallel)
     for name, function in (("forward", _forward), ("backward", _backward), ("moment_gradients", _moment_gradients))
     for parallel in (True, False)
 }
 """Compiled on first call: parallel, and serial for forked processes (module docstring)."""
-_FORKED = False
-
-
-def _mark_forked() -> None:
-    global _FORKED
-    _FORKED = True
-
-
-os.register_at_fork(after_in_child=_mark_forked)
 
 
 def _kernel(name: str):
     """The kernel to run in this process, on torch's thread count (``--threads``)."""
-    if _FORKED:
+    if forked():
         return _KERNELS[name, False]
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+    match_torch_threads()
     return _KERNELS[name, True]
 
 

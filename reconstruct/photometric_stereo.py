@@ -48,8 +48,9 @@ from dataclasses import dataclass, field
 import torch
 
 from capture_sim.errors import InputError, check_array, check_field_types, is_whole_number
+from reconstruct import alternate_kernel
 from reconstruct.lighting import LightField, differentiable_vectors, emission_scale, finite_albedo, lighting_matrix
-from reconstruct.pixel_solve import CONDITION_CAP, Moments, alternate, implicit_step, length, normal_condition, normalised_moments, relative_residual, take_pixels
+from reconstruct.pixel_solve import CONDITION_CAP, Moments, implicit_step, length, normal_condition, normalised_moments, relative_residual, take_pixels
 from reconstruct.shadow_search import restarted_search
 
 FLAG_NAMES = ("dark", "saturated", "ill_conditioned", "back_facing", "bad_geometry", "not_converged", "poor_fit", "grazing")
@@ -455,7 +456,7 @@ def _solve_block(captures, lighting, points, lights, falloff, config: PSConfig, 
         evaluator = PatternEvaluator(light_field, lighting, captures, equation_weight, capture_scale, keep_vectors=track_gradient)
 
         def fit(albedo, moments):
-            return alternate(albedo, moments, config.damping, config.tolerance_deg, config.max_alternations)
+            return alternate_kernel.alternate(albedo, moments, config.damping, config.tolerance_deg, config.max_alternations)
 
         initial_albedo = (captures.detach().amax(dim=0) / capture_scale).clamp_min(0)  # = max of I / scale: the scale is positive
         view = light_field.view.T.contiguous()

@@ -1,4 +1,6 @@
 """Shared fixtures and the tolerance table (one place for all tolerances, keyed by dtype)."""
+import signal
+
 import numpy as np
 import pytest
 import torch
@@ -18,6 +20,16 @@ def fresh_warnings():
     from capture_sim.errors import forget_warnings
 
     forget_warnings()
+
+
+@pytest.fixture
+def python_sigint():
+    """Python's SIGINT handler (KeyboardInterrupt) for the test. A shell starts a background job
+    (``pytest &``) with SIGINT ignored, and Python then leaves it ignored: a Ctrl-C test would
+    wait for an interrupt that never comes."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
 
 
 @pytest.fixture

@@ -654,7 +654,7 @@ def test_parallel_subset_evaluation_matches_in_process_and_deduplicates(scenes, 
     assert serial[2].evaluations[0]["mae"] < serial[0].evaluations[0]["mae"]
 
 
-def test_ctrl_c_during_parallel_evaluation_stops_the_workers(scenes, monkeypatch):
+def test_ctrl_c_during_parallel_evaluation_stops_the_workers(scenes, monkeypatch, python_sigint):
     """Ctrl-C reaches the workers and the parent (one process group). Emulated without signalling
     the group (that would reach the test runner): each job interrupts its own worker, one also
     the parent, and both sleep. The workers must ignore it and the parent must stop them and raise

@@ -493,7 +493,7 @@ def test_a_second_run_on_the_same_output_is_refused(tmp_path, scene_dirs):
     assert not (tmp_path / "new").exists()
 
 
-def test_the_output_lock_and_the_final_moves_survive_races_and_interrupts(tmp_path, monkeypatch):
+def test_the_output_lock_and_the_final_moves_survive_races_and_interrupts(tmp_path, monkeypatch, python_sigint):
     """A run that opened the lock file just before its holder removed it must not keep a lock on
     the removed file (a third run could lock a new one beside it); SIGINT and SIGTERM during the
     moves of staged outputs arrive after them and after the clean-up, SIGTERM first."""
