@@ -1,4 +1,5 @@
 """Shared fixtures and the tolerance table (one place for all tolerances, keyed by dtype)."""
+import multiprocessing
 import signal
 
 import numpy as np
@@ -20,6 +21,31 @@ def fresh_warnings():
     from capture_sim.errors import forget_warnings
 
     forget_warnings()
+
+
+def arrays_from_forked_process(work) -> list:
+    """The tensors that ``work()`` returns (a list), computed without gradient in a forked child
+    process on one thread (as compare's evaluation workers), as numpy arrays."""
+    context = multiprocessing.get_context("fork")
+    receiver, sender = context.Pipe(duplex=False)
+
+    def child_main():
+        torch.set_num_threads(1)  # a forked child must not enter torch's OpenMP pool
+        with torch.no_grad():
+            sender.send([value.numpy() for value in work()])
+        sender.close()
+
+    child = context.Process(target=child_main, daemon=True)
+    child.start()
+    sender.close()
+    try:
+        assert receiver.poll(120), "the forked process gave no result"
+        values = receiver.recv()
+        child.join(30)
+        assert child.exitcode == 0
+    finally:
+        child.kill()
+    return values
 
 
 @pytest.fixture

@@ -1,6 +1,4 @@
 """The compiled alternation to convergence against its torch reference (pixel_solve.alternate)."""
-import multiprocessing
-
 import numpy as np
 import pytest
 import torch
@@ -8,6 +6,7 @@ import torch
 from reconstruct import alternate_kernel
 from reconstruct.pixel_solve import Moments, normalised_moments
 from reconstruct.pixel_solve import alternate as reference
+from tests.conftest import arrays_from_forked_process
 
 
 def _inputs(count: int, dtype, seed: int = 0, nearly_rank_two: bool = False):
@@ -84,29 +83,10 @@ def test_kernel_refuses_what_it_cannot_read():
     assert not alternate_kernel.kernel_applies(albedo.half(), half)
 
 
-def _alternate_in_child(connection):
-    torch.set_num_threads(1)
-    albedo, moments = _inputs(500, torch.float32, seed=7, nearly_rank_two=True)
-    with torch.no_grad():
-        connection.send([value.numpy() for value in alternate_kernel.alternate(albedo, moments, 1e-4, 0.05, 50)])
-    connection.close()
-
-
 def test_serial_kernel_in_a_forked_process_gives_the_same_values():
     # compare forks its evaluation workers after the parallel kernel may have run (reconstruct.compiled).
     albedo, moments = _inputs(500, torch.float32, seed=7, nearly_rank_two=True)
     with torch.no_grad():
         parent = alternate_kernel.alternate(albedo, moments, 1e-4, 0.05, 50)
-    context = multiprocessing.get_context("fork")
-    receiver, sender = context.Pipe(duplex=False)
-    child = context.Process(target=_alternate_in_child, args=(sender,), daemon=True)
-    child.start()
-    sender.close()
-    try:
-        assert receiver.poll(120), "the forked process gave no result"
-        values = receiver.recv()
-        child.join(30)
-        assert child.exitcode == 0
-    finally:
-        child.kill()
+    values = arrays_from_forked_process(lambda: alternate_kernel.alternate(albedo, moments, 1e-4, 0.05, 50))
     assert all(np.array_equal(value, expected.numpy()) for value, expected in zip(values, parent))

@@ -11,6 +11,7 @@ from reconstruct.lighting import SYMMETRIC_PAIRS, extreme_lights
 from reconstruct.metrics import angular_error_deg
 from reconstruct.unrolled_alternation import _step, alternate, symmetric_direction
 from reconstruct.unrolled_ps import UnrolledPSConfig, light_reach, solve_ps_unrolled
+from tests.conftest import arrays_from_forked_process
 from train.scene_pixels import scene_pixels
 
 
@@ -170,34 +171,13 @@ def test_kernels_compile_without_a_writable_cache_folder(monkeypatch):
                zip(module.alternation_forward(normal, moments, rhs, 1e-6, 1e-20), kernels.alternation_forward(normal, moments, rhs, 1e-6, 1e-20)))
 
 
-def _alternate_in_child(connection):
-    torch.set_num_threads(1)  # as compare's workers: a forked child must not enter torch's OpenMP pool
-    normal, moments, rhs = _alternation_inputs(count=300, seed=5)
-    with torch.no_grad():
-        connection.send([value.numpy() for value in alternate(normal, None, moments, rhs, 1e-6, 2)])
-    connection.close()
-
-
 def test_compiled_alternation_runs_in_a_forked_process():
     # compare forks its evaluation workers; GNU OpenMP aborts a forked child of a process that ran
     # parallel kernels, so forked processes take the serial kernels.
-    import multiprocessing
-
     normal, moments, rhs = _alternation_inputs(count=300, seed=5)
     with torch.no_grad():
         parent = alternate(normal, None, moments, rhs, 1e-6, 2)
-    context = multiprocessing.get_context("fork")
-    receiver, sender = context.Pipe(duplex=False)
-    child = context.Process(target=_alternate_in_child, args=(sender,), daemon=True)
-    child.start()
-    sender.close()
-    try:
-        assert receiver.poll(120), "the forked process gave no result"
-        values = receiver.recv()
-        child.join(30)
-        assert child.exitcode == 0
-    finally:
-        child.kill()
+    values = arrays_from_forked_process(lambda: alternate(normal, None, moments, rhs, 1e-6, 2))
     assert all(np.array_equal(value, expected.numpy()) for value, expected in zip(values, parent))
 
 
