@@ -19,6 +19,7 @@ caching: ``reconstruct.compiled`` (both versions here are cached: they are separ
 from __future__ import annotations
 
 import math
+import operator
 
 import numpy as np
 import torch
@@ -28,6 +29,8 @@ from reconstruct.compiled import compile_kernel, forked, match_torch_threads
 from reconstruct.pixel_solve import ABSOLUTE_DAMPING, WIDE_ALTERNATIONS, Moments
 from reconstruct.pixel_solve import alternate as reference_alternate
 
+MAX_ALTERNATIONS = 2 ** 62
+"""Cap on ``max_alternations`` (the kernels count in 64-bit integers): no pixel gets there."""
 NOT_CONVERGED, CONVERGED, STOPPED = 0, 1, 2
 """Per-pixel status the kernels return: STOPPED is a non-shrinking move above the rounding level
 (``pixel_solve.alternate``: iterated again in float64 when the dtype is narrower)."""
@@ -36,7 +39,7 @@ NOT_CONVERGED, CONVERGED, STOPPED = 0, 1, 2
 @njit(inline="always", error_model="numpy")
 def _albedo(moment, projection, n, c, n0, n1, n2, damping, absolute, three, zero):
     """Albedo given normal, channel c: max(0, n . r_c / (n^T B_c n + damping trace(B_c) / 3 + absolute))."""
-    numerator = n0 * projection[c, 0, n] + n1 * projection[c, 1, n] + n2 * projection[c, 2, n]
+    numerator = zero + n0 * projection[c, 0, n] + n1 * projection[c, 1, n] + n2 * projection[c, 2, n]
     b00, b11, b22 = moment[c, 0, n], moment[c, 1, n], moment[c, 2, n]
     b01, b02, b12 = moment[c, 3, n], moment[c, 4, n], moment[c, 5, n]
     shading = (b00 * (n0 * n0) + b11 * (n1 * n1) + b22 * (n2 * n2) + b01 * (n0 * n1 + n1 * n0)
@@ -49,16 +52,18 @@ def _albedo(moment, projection, n, c, n0, n1, n2, damping, absolute, three, zero
 def _alternation(moment, projection, n, a0, a1, a2, damping, tiny, absolute, three):
     """Phi at pixel n (``pixel_solve.alternation``): albedo -> normal -> albedo."""
     # Normal given albedo: (S / s + damping I) x = v / s, S = sum_c a_c^2 B_c, v = sum_c a_c r_c.
+    # The sums start from +0 as torch's do, so that a sum of -0.0 terms is +0.0 here too.
+    zero = tiny - tiny
     q0, q1, q2 = a0 * a0, a1 * a1, a2 * a2
-    s00 = q0 * moment[0, 0, n] + q1 * moment[1, 0, n] + q2 * moment[2, 0, n]
-    s11 = q0 * moment[0, 1, n] + q1 * moment[1, 1, n] + q2 * moment[2, 1, n]
-    s22 = q0 * moment[0, 2, n] + q1 * moment[1, 2, n] + q2 * moment[2, 2, n]
-    s01 = q0 * moment[0, 3, n] + q1 * moment[1, 3, n] + q2 * moment[2, 3, n]
-    s02 = q0 * moment[0, 4, n] + q1 * moment[1, 4, n] + q2 * moment[2, 4, n]
-    s12 = q0 * moment[0, 5, n] + q1 * moment[1, 5, n] + q2 * moment[2, 5, n]
-    v0 = a0 * projection[0, 0, n] + a1 * projection[1, 0, n] + a2 * projection[2, 0, n]
-    v1 = a0 * projection[0, 1, n] + a1 * projection[1, 1, n] + a2 * projection[2, 1, n]
-    v2 = a0 * projection[0, 2, n] + a1 * projection[1, 2, n] + a2 * projection[2, 2, n]
+    s00 = zero + q0 * moment[0, 0, n] + q1 * moment[1, 0, n] + q2 * moment[2, 0, n]
+    s11 = zero + q0 * moment[0, 1, n] + q1 * moment[1, 1, n] + q2 * moment[2, 1, n]
+    s22 = zero + q0 * moment[0, 2, n] + q1 * moment[1, 2, n] + q2 * moment[2, 2, n]
+    s01 = zero + q0 * moment[0, 3, n] + q1 * moment[1, 3, n] + q2 * moment[2, 3, n]
+    s02 = zero + q0 * moment[0, 4, n] + q1 * moment[1, 4, n] + q2 * moment[2, 4, n]
+    s12 = zero + q0 * moment[0, 5, n] + q1 * moment[1, 5, n] + q2 * moment[2, 5, n]
+    v0 = zero + a0 * projection[0, 0, n] + a1 * projection[1, 0, n] + a2 * projection[2, 0, n]
+    v1 = zero + a0 * projection[0, 1, n] + a1 * projection[1, 1, n] + a2 * projection[2, 1, n]
+    v2 = zero + a0 * projection[0, 2, n] + a1 * projection[1, 2, n] + a2 * projection[2, 2, n]
     scale = (s00 + s11 + s22) / three
     if scale < tiny:
         scale = tiny
@@ -71,7 +76,6 @@ def _alternation(moment, projection, n, a0, a1, a2, damping, tiny, absolute, thr
     x2 = c02 * v0 + c12 * v1 + c22 * v2
     inverse = (three / three) / np.sqrt(x0 * x0 + x1 * x1 + x2 * x2 + tiny)  # a zero solution stays zero
     n0, n1, n2 = x0 * inverse, x1 * inverse, x2 * inverse
-    zero = tiny - tiny
     a0 = _albedo(moment, projection, n, 0, n0, n1, n2, damping, absolute, three, zero)
     a1 = _albedo(moment, projection, n, 1, n0, n1, n2, damping, absolute, three, zero)
     a2 = _albedo(moment, projection, n, 2, n0, n1, n2, damping, absolute, three, zero)
@@ -155,7 +159,7 @@ def alternate(albedo: torch.Tensor, moments: Moments, damping: float, tolerance_
         kernel = _PARALLEL
     kernel(*(value.detach().contiguous().numpy() for value in (moments.moment, moments.projection, albedo)),
            kind(damping), kind(torch.finfo(dtype).tiny ** 0.5), kind(ABSOLUTE_DAMPING), kind(3.0), kind(math.radians(tolerance_deg)),
-           kind(torch.finfo(dtype).eps ** 0.5), int(max_alternations), albedo_out.numpy(), normal_out.numpy(), status.numpy())
+           kind(torch.finfo(dtype).eps ** 0.5), min(operator.index(max_alternations), MAX_ALTERNATIONS), albedo_out.numpy(), normal_out.numpy(), status.numpy())
     converged = status == CONVERGED
     stopped = torch.nonzero(status == STOPPED).squeeze(1)
     if stopped.numel() and dtype != torch.float64:

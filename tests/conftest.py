@@ -1,6 +1,7 @@
 """Shared fixtures and the tolerance table (one place for all tolerances, keyed by dtype)."""
 import multiprocessing
 import signal
+import traceback
 
 import numpy as np
 import pytest
@@ -25,14 +26,18 @@ def fresh_warnings():
 
 def arrays_from_forked_process(work) -> list:
     """The tensors that ``work()`` returns (a list), computed without gradient in a forked child
-    process on one thread (as compare's evaluation workers), as numpy arrays."""
+    process on one thread (as compare's evaluation workers), as numpy arrays. An exception in the
+    child is raised here, with the child's traceback in its message."""
     context = multiprocessing.get_context("fork")
     receiver, sender = context.Pipe(duplex=False)
 
     def child_main():
         torch.set_num_threads(1)  # a forked child must not enter torch's OpenMP pool
-        with torch.no_grad():
-            sender.send([value.numpy() for value in work()])
+        try:
+            with torch.no_grad():
+                sender.send(("values", [value.numpy() for value in work()]))
+        except BaseException:
+            sender.send(("error", traceback.format_exc()))
         sender.close()
 
     child = context.Process(target=child_main, daemon=True)
@@ -40,12 +45,14 @@ def arrays_from_forked_process(work) -> list:
     sender.close()
     try:
         assert receiver.poll(120), "the forked process gave no result"
-        values = receiver.recv()
+        kind, payload = receiver.recv()
         child.join(30)
-        assert child.exitcode == 0
     finally:
         child.kill()
-    return values
+    if kind == "error":
+        raise AssertionError(f"in the forked process:\n{payload}")
+    assert child.exitcode == 0
+    return payload
 
 
 @pytest.fixture
@@ -55,7 +62,7 @@ def python_sigint():
     wait for an interrupt that never comes."""
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     yield
-    signal.signal(signal.SIGINT, previous)
+    signal.signal(signal.SIGINT, signal.SIG_DFL if previous is None else previous)  # None: not set from Python
 
 
 @pytest.fixture

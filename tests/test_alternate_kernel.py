@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from reconstruct import alternate_kernel
+from reconstruct import alternate_kernel, compiled
 from reconstruct.pixel_solve import Moments, normalised_moments
 from reconstruct.pixel_solve import alternate as reference
 from tests.conftest import arrays_from_forked_process
@@ -27,6 +27,17 @@ def _inputs(count: int, dtype, seed: int = 0, nearly_rank_two: bool = False):
     return (captures.amax(0) / scale).clamp_min(0).to(dtype), moments
 
 
+_BITS = {torch.float32: torch.int32, torch.float64: torch.int64}
+
+
+def _same_bits(result, expected) -> bool:
+    """Results (albedo, normal, converged) equal bit for bit: -0.0 and +0.0 differ here, unlike in
+    torch.equal."""
+    return all(value.dtype == other.dtype and (torch.equal(value.view(_BITS[value.dtype]), other.view(_BITS[other.dtype]))
+                                               if value.dtype in _BITS else torch.equal(value, other))
+               for value, other in zip(result, expected, strict=True))
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("nearly_rank_two", [False, True])
 @pytest.mark.parametrize("max_alternations", [1, 2, 5, 50])
@@ -37,7 +48,7 @@ def test_kernel_equals_the_reference(dtype, nearly_rank_two, max_alternations):
     with torch.no_grad():
         result = alternate_kernel.alternate(albedo, moments, 1e-4, 0.05, max_alternations)
     assert [value.dtype for value in result] == [dtype, dtype, torch.bool]
-    assert all(torch.equal(value, other) for value, other in zip(result, expected))
+    assert _same_bits(result, expected)
     if max_alternations == 50:
         assert 0 < int(result[2].sum()) < 3000 or not nearly_rank_two
 
@@ -54,22 +65,21 @@ def test_float32_pixels_that_stall_are_iterated_in_float64(monkeypatch):
     monkeypatch.setattr(alternate_kernel, "alternate", counting)
     result = original(albedo, moments, 1e-4, 0.05, 50)
     assert widened and widened[0][0] == torch.float64 and widened[0][1] > 0
-    assert all(torch.equal(value, other) for value, other in zip(result, reference(albedo, moments, 1e-4, 0.05, 50)))
+    assert _same_bits(result, reference(albedo, moments, 1e-4, 0.05, 50))
 
 
 def test_strided_empty_and_gradient_inputs():
     albedo, moments = _inputs(200, torch.float64, seed=3)
     every_other = Moments(*(getattr(moments, name)[..., ::2] for name in Moments._FIELDS))
     assert not every_other.moment.is_contiguous()
-    assert all(torch.equal(value, other) for value, other in zip(alternate_kernel.alternate(albedo[:, ::2], every_other, 1e-4, 0.05, 20),
-                                                              reference(albedo[:, ::2], every_other, 1e-4, 0.05, 20)))
+    assert _same_bits(alternate_kernel.alternate(albedo[:, ::2], every_other, 1e-4, 0.05, 20), reference(albedo[:, ::2], every_other, 1e-4, 0.05, 20))
     empty = alternate_kernel.alternate(albedo[:, :0], Moments(*(getattr(moments, name)[..., :0] for name in Moments._FIELDS)), 1e-4, 0.05, 20)
     assert [tuple(value.shape) for value in empty] == [(3, 0), (3, 0), (0,)]
     # Inputs that need a gradient take the reference, which keeps the graph.
     tracked = albedo.clone().requires_grad_()
     result = alternate_kernel.alternate(tracked, moments, 1e-4, 0.05, 3)
     assert result[0].requires_grad
-    assert all(torch.equal(value.detach(), other) for value, other in zip(result, reference(albedo, moments, 1e-4, 0.05, 3)))
+    assert _same_bits([value.detach() for value in result], reference(albedo, moments, 1e-4, 0.05, 3))
 
 
 def test_kernel_refuses_what_it_cannot_read():
@@ -81,12 +91,37 @@ def test_kernel_refuses_what_it_cannot_read():
     assert not alternate_kernel.kernel_applies(albedo, short)
     half = Moments(*(getattr(moments, name).half() for name in Moments._FIELDS))
     assert not alternate_kernel.kernel_applies(albedo.half(), half)
+    for name in ("moment", "projection"):  # the kernels read both over the albedo's pixel count
+        for count in (9, 11):
+            resized = torch.zeros(*getattr(moments, name).shape[:-1], count)
+            changed = Moments(*(resized if field == name else getattr(moments, field) for field in Moments._FIELDS))
+            assert not alternate_kernel.kernel_applies(albedo, changed), (name, count)
+        wide = Moments(*(getattr(moments, field).double() if field == name else getattr(moments, field) for field in Moments._FIELDS))
+        assert not alternate_kernel.kernel_applies(albedo, wide), name
 
 
-def test_serial_kernel_in_a_forked_process_gives_the_same_values():
+def test_zero_albedo_and_dark_pixels_keep_the_sign_of_zero():
+    # torch's sums start from +0.0: a sum of -0.0 terms is +0.0 (the kernel's sums start so too).
+    albedo, moments = _inputs(500, torch.float32, seed=5)
+    with torch.no_grad():
+        assert _same_bits(alternate_kernel.alternate(torch.zeros_like(albedo), moments, 1e-4, 0.05, 20),
+                          reference(torch.zeros_like(albedo), moments, 1e-4, 0.05, 20))
+        assert _same_bits(alternate_kernel.alternate(-albedo, moments, 1e-4, 0.05, 20), reference(-albedo, moments, 1e-4, 0.05, 20))
+
+
+def test_serial_kernel_in_a_forked_process_gives_the_same_values(monkeypatch):
     # compare forks its evaluation workers after the parallel kernel may have run (reconstruct.compiled).
     albedo, moments = _inputs(500, torch.float32, seed=7, nearly_rank_two=True)
     with torch.no_grad():
         parent = alternate_kernel.alternate(albedo, moments, 1e-4, 0.05, 50)
-    values = arrays_from_forked_process(lambda: alternate_kernel.alternate(albedo, moments, 1e-4, 0.05, 50))
-    assert all(np.array_equal(value, expected.numpy()) for value, expected in zip(values, parent))
+
+    def serial_in_child():
+        assert compiled.forked()
+        return [*alternate_kernel.alternate(albedo, moments, 1e-4, 0.05, 50)]
+
+    def no_reference(*arguments):
+        raise AssertionError("the forked process took the torch reference, not the serial kernel")
+
+    monkeypatch.setattr(alternate_kernel, "reference_alternate", no_reference)  # the child inherits it
+    values = arrays_from_forked_process(serial_in_child)
+    assert all(np.array_equal(value, expected.numpy()) for value, expected in zip(values, parent, strict=True))
