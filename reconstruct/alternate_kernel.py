@@ -26,7 +26,7 @@ import torch
 from numba import njit, prange
 
 from reconstruct.compiled import compile_kernel, forked, match_torch_threads
-from reconstruct.pixel_solve import ABSOLUTE_DAMPING, WIDE_ALTERNATIONS, Moments
+from reconstruct.pixel_solve import ABSOLUTE_DAMPING, Moments, widen_stopped
 from reconstruct.pixel_solve import alternate as reference_alternate
 
 MAX_ALTERNATIONS = 2 ** 62
@@ -88,24 +88,18 @@ def _pixel(moment, projection, albedo, n, damping, tiny, absolute, three, tolera
     normal and the status."""
     a0, a1, a2, n0, n1, n2 = _alternation(moment, projection, n, albedo[0, n], albedo[1, n], albedo[2, n], damping, tiny, absolute, three)
     state = NOT_CONVERGED
-    if max_alternations >= 2:
+    previous = np.inf  # the first move (second alternation) has none before it to stall against
+    for _ in range(max_alternations - 1):
         a0, a1, a2, m0, m1, m2 = _alternation(moment, projection, n, a0, a1, a2, damping, tiny, absolute, three)
-        previous = np.sqrt((m0 - n0) * (m0 - n0) + (m1 - n1) * (m1 - n1) + (m2 - n2) * (m2 - n2))
-        n0, n1, n2 = m0, m1, m2
-        if previous <= tolerance:
+        move = np.sqrt((m0 - n0) * (m0 - n0) + (m1 - n1) * (m1 - n1) + (m2 - n2) * (m2 - n2))
+        stalled = move >= previous  # never for the first: unit or NaN normals move by at most 2 or NaN
+        n0, n1, n2, previous = m0, m1, m2, move
+        if move <= tolerance or (stalled and move <= rounding):
             state = CONVERGED
-        else:
-            for _ in range(max_alternations - 2):
-                a0, a1, a2, m0, m1, m2 = _alternation(moment, projection, n, a0, a1, a2, damping, tiny, absolute, three)
-                move = np.sqrt((m0 - n0) * (m0 - n0) + (m1 - n1) * (m1 - n1) + (m2 - n2) * (m2 - n2))
-                stalled = move >= previous
-                n0, n1, n2, previous = m0, m1, m2, move
-                if move <= tolerance or (stalled and move <= rounding):
-                    state = CONVERGED
-                    break
-                if stalled:
-                    state = STOPPED
-                    break
+            break
+        if stalled:
+            state = STOPPED
+            break
     albedo_out[0, n], albedo_out[1, n], albedo_out[2, n] = a0, a1, a2
     normal_out[0, n], normal_out[1, n], normal_out[2, n] = n0, n1, n2
     status[n] = state
@@ -143,9 +137,8 @@ def alternate(albedo: torch.Tensor, moments: Moments, damping: float, tolerance_
     Returns:
         (albedo (3, N), normal (3, N), converged (N,) bool) with albedo = A(normal).
     """
-    if torch.is_grad_enabled() and (albedo.requires_grad or moments.moment.requires_grad or moments.projection.requires_grad):
-        return reference_alternate(albedo, moments, damping, tolerance_deg, max_alternations)
-    if not kernel_applies(albedo, moments):
+    needs_graph = torch.is_grad_enabled() and any(value.requires_grad for value in (albedo, moments.moment, moments.projection))
+    if needs_graph or not kernel_applies(albedo, moments):
         return reference_alternate(albedo, moments, damping, tolerance_deg, max_alternations)
     dtype = albedo.dtype
     kind = _KINDS[dtype]
@@ -161,10 +154,5 @@ def alternate(albedo: torch.Tensor, moments: Moments, damping: float, tolerance_
            kind(damping), kind(torch.finfo(dtype).tiny ** 0.5), kind(ABSOLUTE_DAMPING), kind(3.0), kind(math.radians(tolerance_deg)),
            kind(torch.finfo(dtype).eps ** 0.5), min(operator.index(max_alternations), MAX_ALTERNATIONS), albedo_out.numpy(), normal_out.numpy(), status.numpy())
     converged = status == CONVERGED
-    stopped = torch.nonzero(status == STOPPED).squeeze(1)
-    if stopped.numel() and dtype != torch.float64:
-        wide_albedo, wide_normal, wide_converged = alternate(albedo_out[:, stopped].double(), moments.subset(stopped).to(torch.float64),
-                                                             damping, tolerance_deg, min(max_alternations, WIDE_ALTERNATIONS))
-        albedo_out[:, stopped], normal_out[:, stopped] = wide_albedo.to(dtype), wide_normal.to(dtype)
-        converged[stopped] = wide_converged
+    widen_stopped(alternate, albedo_out, normal_out, converged, torch.nonzero(status == STOPPED).squeeze(1), moments, damping, tolerance_deg, max_alternations)
     return albedo_out, normal_out, converged

@@ -356,13 +356,21 @@ def alternate(albedo: torch.Tensor, moments: Moments, damping: float, tolerance_
         converged[active[finished]] = True
         stopped.append(active[done & ~finished])
         active = active[~done]
-    stopped = torch.cat(stopped)
-    if stopped.numel() and albedo.dtype != torch.float64:
-        wide_albedo, wide_normal, wide_converged = alternate(albedo[:, stopped].double(), moments.subset(stopped).to(torch.float64),
-                                                             damping, tolerance_deg, min(max_alternations, WIDE_ALTERNATIONS))
-        albedo[:, stopped], normal[:, stopped] = wide_albedo.to(albedo.dtype), wide_normal.to(normal.dtype)
-        converged[stopped] = wide_converged
+    widen_stopped(alternate, albedo, normal, converged, torch.cat(stopped), moments, damping, tolerance_deg, max_alternations)
     return albedo, normal, converged
+
+
+def widen_stopped(solve, albedo, normal, converged, stopped, moments: Moments, damping: float, tolerance_deg: float, max_alternations: int) -> None:
+    """``alternate``'s float64 pass, in place: below float64, the pixels ``stopped`` (S,) (indices
+    of pixels that stopped on a non-shrinking move) of albedo (3, N), normal (3, N) and converged
+    (N,) are iterated on by ``solve`` (``alternate`` or a compiled equal) in float64 from where
+    they stopped, at most ``WIDE_ALTERNATIONS`` more; other arguments as ``alternate``'s."""
+    if stopped.numel() == 0 or albedo.dtype == torch.float64:
+        return
+    wide_albedo, wide_normal, wide_converged = solve(albedo[:, stopped].double(), moments.subset(stopped).to(torch.float64),
+                                                     damping, tolerance_deg, min(max_alternations, WIDE_ALTERNATIONS))
+    albedo[:, stopped], normal[:, stopped] = wide_albedo.to(albedo.dtype), wide_normal.to(normal.dtype)
+    converged[stopped] = wide_converged
 
 
 def symmetric_apply(matrix: torch.Tensor, vector: torch.Tensor) -> torch.Tensor:
